@@ -1,0 +1,1 @@
+"""Patient anatomy: phantom generation, segmentation, signed distance, surface mesh."""
