@@ -1,0 +1,77 @@
+#!/usr/bin/env python3
+"""Print the exact code dependencies of a pipeline stage (for dvc.yaml `deps`).
+
+A stage's code is the import closure, inside ``src/room_pipeline``, of the CLI
+(which dispatches) and of ``stages/<name>.py``, including imports made inside
+functions.  Usage: ``python scripts/stage_deps.py segment``.  The test suite
+checks that every stage in dvc.yaml lists exactly this set.
+"""
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src"
+PKG = "room_pipeline"
+
+
+def _module_file(mod: str) -> Path | None:
+    base = SRC / Path(*mod.split("."))
+    if (base / "__init__.py").is_file():
+        return base / "__init__.py"
+    if base.with_suffix(".py").is_file():
+        return base.with_suffix(".py")
+    return None
+
+
+def _imports(mod: str, path: Path) -> set[str]:
+    is_pkg = path.name == "__init__.py"
+    package = mod if is_pkg else mod.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name.split(".")[0] == PKG)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1])
+                target = f"{base}.{node.module}" if node.module else base
+            else:
+                target = node.module or ""
+            if target.split(".")[0] != PKG:
+                continue
+            found.add(target)
+            for a in node.names:  # `from . import stages` may name a submodule
+                if _module_file(f"{target}.{a.name}"):
+                    found.add(f"{target}.{a.name}")
+    return found
+
+
+def closure(*modules: str) -> set[Path]:
+    todo, seen = list(modules), set()
+    while todo:
+        mod = todo.pop()
+        parts = mod.split(".")
+        for i in range(1, len(parts) + 1):  # parent packages are imported too
+            m = ".".join(parts[:i])
+            if m in seen:
+                continue
+            f = _module_file(m)
+            if f is None:
+                continue
+            seen.add(m)
+            todo.extend(_imports(m, f))
+    return {_module_file(m).relative_to(ROOT) for m in seen}  # type: ignore[union-attr]
+
+
+def stage_deps(stage: str) -> list[str]:
+    return sorted(str(p) for p in closure(f"{PKG}.cli", f"{PKG}.stages.{stage}"))
+
+
+if __name__ == "__main__":
+    for name in sys.argv[1:]:
+        print(f"# {name}")
+        for p in stage_deps(name):
+            print(f"        - {p}")

@@ -1,0 +1,136 @@
+"""The ``room`` command line.
+
+    room stage NAME --patient ID [--params params.yaml] [key=value ...]
+        Run one pipeline stage for one patient (what dvc.yaml calls).  The
+        config is the composition of conf/ with the Hydra overrides given, or,
+        with --params, that composed file plus dot-list overrides.
+    room run [--patient ID] [--until STAGE] [hydra overrides ...]
+        Run the stages in order for one patient into output_dir, each in its
+        own process (as DVC does), stopping after --until.
+    room params [--check] [hydra overrides ...]
+        Write params.yaml as the composition of conf/ (what `dvc exp run`
+        does); --check only reports whether params.yaml is up to date.
+
+Bad input ends with one line on stderr ("room: error: ...") and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+from .errors import RoomError
+
+
+def _config(args: argparse.Namespace):
+    from .config.compose import compose, load_params
+
+    if getattr(args, "params", None):
+        return load_params(args.params, args.overrides)
+    return compose(args.overrides)
+
+
+def cmd_stage(args: argparse.Namespace) -> int:
+    from . import stages
+
+    module = stages.load(args.name)
+    cfg = _config(args)
+    metrics = module.run(cfg, args.patient)
+    if not args.quiet:
+        summary = ", ".join(f"{k}={v}" for k, v in metrics.items() if not isinstance(v, dict))
+        print(f"[{args.name}] {args.patient}: {summary}")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from omegaconf import OmegaConf
+
+    from . import stages
+    from .config.compose import compose, patient_entry
+    from .io.atomic import write_text
+
+    cfg = compose(args.overrides)
+    patients = list(cfg.get("patients") or {})
+    if not patients:
+        raise RoomError("no patients configured")
+    patient = args.patient or patients[0]
+    patient_entry(cfg, patient)  # validates
+    is_phantom = patient in (cfg.get("phantoms") or {})
+    order = [s for s in stages.STAGES if is_phantom or s not in stages.PHANTOM_ONLY]
+    if args.until:
+        if args.until not in order:
+            raise RoomError(f"--until {args.until}: not a stage of this run ({', '.join(order)})")
+        order = order[: order.index(args.until) + 1]
+    run_dir = Path(cfg.output_dir) / patient
+    config_path = run_dir / "run_config.yaml"
+    write_text(config_path, OmegaConf.to_yaml(cfg))
+    for name in order:
+        print(f"room run: stage {name} ({patient})", flush=True)
+        rc = subprocess.call([sys.executable, "-m", "room_pipeline.cli", "stage", name,
+                              "--patient", patient, "--params", str(config_path)])
+        if rc != 0:
+            print(f"room: error: stage '{name}' failed for {patient} (exit {rc})", file=sys.stderr)
+            return rc
+    print(f"room run: done -> {run_dir}")
+    return 0
+
+
+def cmd_params(args: argparse.Namespace) -> int:
+    from .config.compose import compose_yaml, write_params
+
+    target = Path(args.output)
+    if args.check:
+        fresh = compose_yaml(args.overrides)
+        current = target.read_text(encoding="utf-8") if target.exists() else ""
+        if fresh != current:
+            print(f"{target} is stale: run `room params` (or `dvc exp run`) to recompose it from conf/",
+                  file=sys.stderr)
+            return 1
+        print(f"{target} is the composition of conf/")
+        return 0
+    write_params(target, args.overrides)
+    print(f"wrote {target}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="room", description="room-pipeline: CT -> bronchoscopy datasets")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("stage", help="run one pipeline stage for one patient")
+    s.add_argument("name")
+    s.add_argument("--patient", required=True)
+    s.add_argument("--params", help="composed config file (params.yaml); default: compose conf/")
+    s.add_argument("--quiet", action="store_true")
+    s.add_argument("overrides", nargs="*", help="key=value overrides")
+    s.set_defaults(func=cmd_stage)
+
+    r = sub.add_parser("run", help="run the stages in order for one patient")
+    r.add_argument("--patient", help="patient id (default: the first configured)")
+    r.add_argument("--until", help="stop after this stage")
+    r.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. phantom.spacing_mm=[1,1,1]")
+    r.set_defaults(func=cmd_run)
+
+    q = sub.add_parser("params", help="compose conf/ into params.yaml")
+    q.add_argument("--check", action="store_true", help="only check that params.yaml is fresh")
+    q.add_argument("--output", default="params.yaml")
+    q.add_argument("overrides", nargs="*")
+    q.set_defaults(func=cmd_params)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except RoomError as exc:
+        print(f"room: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("room: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Configuration: Hydra composition of ``conf/`` and access to the composed ``params.yaml``."""

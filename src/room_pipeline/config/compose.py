@@ -1,0 +1,100 @@
+"""Compose the Hydra config tree ``conf/`` and read the composed ``params.yaml``.
+
+``conf/`` is the single source of truth.  ``params.yaml`` is its composition,
+written by :func:`write_params` with exactly the code DVC uses for
+``dvc exp run`` (``dvc.utils.hydra.compose_and_dump``), so both give the same
+bytes and a test can tell when ``params.yaml`` is stale.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+from omegaconf import DictConfig, OmegaConf
+
+from ..errors import ConfigError, InputError
+
+CONFIG_NAME = "config"
+
+
+def find_conf_dir(start: str | os.PathLike | None = None) -> Path:
+    """The ``conf/`` folder of the project containing ``start`` (default: cwd) or ``$ROOM_CONF_DIR``."""
+    env = os.environ.get("ROOM_CONF_DIR")
+    if env:
+        p = Path(env).resolve()
+        if not (p / f"{CONFIG_NAME}.yaml").is_file():
+            raise ConfigError(f"ROOM_CONF_DIR={env} holds no {CONFIG_NAME}.yaml")
+        return p
+    here = Path(start or Path.cwd()).resolve()
+    for d in (here, *here.parents):
+        if (d / "conf" / f"{CONFIG_NAME}.yaml").is_file():
+            return d / "conf"
+    raise ConfigError(f"no conf/{CONFIG_NAME}.yaml in {here} or its parents (run from the project folder)")
+
+
+def compose(overrides: Sequence[str] = (), conf_dir: str | os.PathLike | None = None) -> DictConfig:
+    """Compose ``conf/`` with Hydra override strings; interpolations resolved."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    conf = Path(conf_dir) if conf_dir else find_conf_dir()
+    try:
+        with initialize_config_dir(config_dir=str(conf.resolve()), version_base=None):
+            cfg = hydra_compose(config_name=CONFIG_NAME, overrides=list(overrides))
+        OmegaConf.resolve(cfg)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(f"cannot compose {conf}: {str(exc).splitlines()[0]}") from exc
+    return cfg
+
+
+def compose_yaml(overrides: Sequence[str] = (), conf_dir: str | os.PathLike | None = None) -> str:
+    """The text DVC writes to params.yaml for this composition."""
+    return OmegaConf.to_yaml(compose(overrides, conf_dir))
+
+
+def write_params(path: str | os.PathLike = "params.yaml", overrides: Sequence[str] = (),
+                 conf_dir: str | os.PathLike | None = None) -> None:
+    """Write the composition to ``path`` atomically (same bytes as ``dvc exp run``)."""
+    from ..io.atomic import write_text
+
+    write_text(path, compose_yaml(overrides, conf_dir))
+
+
+def load_params(path: str | os.PathLike, overrides: Sequence[str] = ()) -> DictConfig:
+    """Load a composed config (``params.yaml``) and apply ``key=value`` dot-list overrides."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"params file not found: {path}")
+    cfg = OmegaConf.load(path)
+    if overrides:
+        bad = [o for o in overrides if "=" not in o]
+        if bad:
+            raise ConfigError(f"override must be key=value: {bad[0]}")
+        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+    OmegaConf.resolve(cfg)
+    return cfg
+
+
+def section(cfg: DictConfig, key: str) -> dict:
+    """A config section as a plain dict (for the ``Params.from_dict`` of domain modules)."""
+    if key not in cfg:
+        raise ConfigError(f"config has no section '{key}'")
+    return OmegaConf.to_container(cfg[key], resolve=True)  # type: ignore[return-value]
+
+
+def patient_entry(cfg: DictConfig, patient: str) -> dict:
+    """The ``patients.<id>`` entry, validated."""
+    patients = cfg.get("patients") or {}
+    if patient not in patients:
+        known = ", ".join(sorted(patients)) or "none"
+        raise ConfigError(f"unknown patient '{patient}' (configured: {known})")
+    entry = OmegaConf.to_container(patients[patient], resolve=True)
+    kind = entry.get("kind")
+    if kind not in ("ct", "mask"):
+        raise ConfigError(f"patients.{patient}.kind must be 'ct' or 'mask', got {kind!r}")
+    if not entry.get("input"):
+        raise ConfigError(f"patients.{patient}.input is empty")
+    return entry  # type: ignore[return-value]

@@ -1,0 +1,1 @@
+"""Accuracy evaluation of pipeline outputs against analytic ground truth."""

@@ -1,0 +1,103 @@
+"""The output layout (the ROOM paper's), in one place.
+
+``<output_dir>/<patient>/``
+    ``input/ct.nii.gz``                 phantom CT (phantom patients only)
+    ``ground_truth/``                   phantom ground truth (mask, analytic SDF, tree, centreline)
+    ``anatomy/ct_metadata.json``        source, grid, affine, HU statistics, segmentation report
+    ``anatomy/airway_mask.nii.gz``      airway lumen mask (uint8, 1 = lumen)
+    ``anatomy/sdf.nii.gz``              signed distance, mm, negative inside the lumen
+    ``anatomy/lung_model.obj``          watertight lumen surface, metres
+    ``metrics/<stage>.json``            per-stage DVC metrics
+    ``sequence_YYY/...``                rendered sequences (later stages)
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+
+@dataclasses.dataclass(frozen=True)
+class PatientPaths:
+    output_dir: Path
+    patient: str
+
+    @property
+    def root(self) -> Path:
+        return Path(self.output_dir) / self.patient
+
+    # phantom stage
+    @property
+    def input_dir(self) -> Path:
+        return self.root / "input"
+
+    @property
+    def phantom_ct(self) -> Path:
+        return self.input_dir / "ct.nii.gz"
+
+    @property
+    def ground_truth(self) -> Path:
+        return self.root / "ground_truth"
+
+    @property
+    def gt_mask(self) -> Path:
+        return self.ground_truth / "airway_mask.nii.gz"
+
+    @property
+    def gt_sdf(self) -> Path:
+        return self.ground_truth / "sdf.nii.gz"
+
+    @property
+    def gt_sdf_exact(self) -> Path:
+        return self.ground_truth / "sdf_exact.nii.gz"
+
+    @property
+    def gt_tree(self) -> Path:
+        return self.ground_truth / "tree.json"
+
+    @property
+    def gt_centreline(self) -> Path:
+        return self.ground_truth / "centreline.json"
+
+    @property
+    def gt_metadata(self) -> Path:
+        return self.ground_truth / "phantom_metadata.json"
+
+    # anatomy stages
+    @property
+    def anatomy(self) -> Path:
+        return self.root / "anatomy"
+
+    @property
+    def ct_metadata(self) -> Path:
+        return self.anatomy / "ct_metadata.json"
+
+    @property
+    def airway_mask(self) -> Path:
+        return self.anatomy / "airway_mask.nii.gz"
+
+    @property
+    def sdf(self) -> Path:
+        return self.anatomy / "sdf.nii.gz"
+
+    @property
+    def sdf_metadata(self) -> Path:
+        return self.anatomy / "sdf_metadata.json"
+
+    @property
+    def mesh(self) -> Path:
+        return self.anatomy / "lung_model.obj"
+
+    @property
+    def mesh_metadata(self) -> Path:
+        return self.anatomy / "mesh_metadata.json"
+
+    @property
+    def tet_mesh(self) -> Path:
+        return self.anatomy / "lung_model_tet.npz"
+
+    @property
+    def metrics_dir(self) -> Path:
+        return self.root / "metrics"
+
+    def metrics(self, stage: str) -> Path:
+        return self.metrics_dir / f"{stage}.json"

@@ -1,0 +1,70 @@
+"""Shared plumbing of the stage modules: paths, metadata, timing, metrics."""
+from __future__ import annotations
+
+import hashlib
+import json
+import resource
+import time
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from .. import __version__
+from ..conventions import metadata_block
+from ..io.atomic import write_json
+from ..paths import PatientPaths
+
+
+def patient_paths(cfg: DictConfig, patient: str) -> PatientPaths:
+    return PatientPaths(Path(cfg.output_dir), patient)
+
+
+def config_section(cfg: DictConfig, *keys: str) -> dict:
+    return {k: OmegaConf.to_container(cfg[k], resolve=True) if isinstance(cfg[k], DictConfig) else cfg[k]
+            for k in keys if k in cfg}
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file, or of a folder's files (sorted by relative path)."""
+    p = Path(path)
+    h = hashlib.sha256()
+    files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+    for f in files:
+        if p.is_dir():
+            h.update(str(f.relative_to(p)).encode())
+        with open(f, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def metadata(stage: str, patient: str, cfg: DictConfig, keys: tuple[str, ...], **extra: Any) -> dict:
+    """Common metadata block of every output: what made it, with which config, in which conventions."""
+    return {"stage": stage, "patient": patient, "room_pipeline_version": __version__,
+            "config": config_section(cfg, *keys), "conventions": metadata_block(), **extra}
+
+
+class StageTimer:
+    """Wall time and peak resident memory of the stage process."""
+
+    def __enter__(self) -> "StageTimer":
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.wall_s = time.perf_counter() - self.t0
+
+    @staticmethod
+    def peak_rss_mb() -> float:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def write_metrics(paths: PatientPaths, stage: str, metrics: dict) -> None:
+    """DVC metrics file ``metrics/<stage>.json`` (JSON numbers only, atomically)."""
+    write_json(paths.metrics(stage), metrics)
+
+
+def read_json(path: str | Path) -> Any:
+    with open(path, encoding="utf-8") as fh:
+        return json.load(fh)

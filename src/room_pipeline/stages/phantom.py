@@ -1,0 +1,54 @@
+"""Stage `phantom`: generate the procedural phantom patient's CT and its exact ground truth."""
+from __future__ import annotations
+
+import numpy as np
+from omegaconf import DictConfig
+
+from ..anatomy.phantom import PhantomParams, make_phantom
+from ..config.compose import section
+from ..errors import ConfigError
+from ..io.atomic import write_json
+from ..io.volume import write_nifti
+from .common import StageTimer, metadata, patient_paths, write_metrics
+
+#: centreline sampling step as a fraction of the smallest voxel size
+CENTRELINE_STEP_VOXELS = 0.25
+
+
+def outputs(cfg: DictConfig, patient: str) -> list:
+    p = patient_paths(cfg, patient)
+    return [p.phantom_ct, p.ground_truth]
+
+
+def run(cfg: DictConfig, patient: str) -> dict:
+    phantoms = cfg.get("phantoms") or {}
+    if patient not in phantoms:
+        raise ConfigError(f"'{patient}' is not a phantom patient (phantoms: {', '.join(phantoms) or 'none'})")
+    seed = int(phantoms[patient].get("seed", 0))
+    params = PhantomParams.from_dict(section(cfg, "phantom"))
+    paths = patient_paths(cfg, patient)
+    with StageTimer() as timer:
+        ph = make_phantom(params, seed=seed)
+        step = CENTRELINE_STEP_VOXELS * float(ph.ct.spacing.min())
+        cl = ph.tree.centreline(step)
+    meta = metadata("phantom", patient, cfg, ("phantom",), seed=seed,
+                    shape=list(ph.ct.shape), spacing_m=ph.ct.spacing.tolist(), affine_m=ph.ct.affine.tolist(),
+                    n_branches=len(ph.tree), max_generation=ph.tree.max_generation)
+    write_nifti(paths.phantom_ct, ph.ct, description=f"room phantom CT, HU, seed {seed}")
+    write_nifti(paths.gt_mask, ph.mask, description="room phantom airway lumen mask")
+    write_nifti(paths.gt_sdf, ph.sdf, description="room phantom analytic SDF, mm, <0 in lumen",
+                scale_values_to_mm=True)
+    write_nifti(paths.gt_sdf_exact, ph.sdf_exact.with_data(ph.sdf_exact.data.astype(np.uint8)),
+                description="1 where the analytic SDF is exact")
+    write_json(paths.gt_tree, {**ph.tree.to_dict(), "metadata": meta})
+    write_json(paths.gt_centreline, {
+        "units": "m", "frame": "RAS+", "step_m": step,
+        "points": np.round(cl["points"], 9), "radius": np.round(cl["radius"], 9),
+        "branch": cl["branch"], "generation": cl["generation"],
+        "arclength": np.round(cl["arclength"], 9)})
+    write_json(paths.gt_metadata, meta)
+    metrics = {"n_branches": len(ph.tree), "max_generation": ph.tree.max_generation,
+               "n_voxels": int(np.prod(ph.ct.shape)), "lumen_volume_ml": float(ph.mask.data.sum() * np.prod(ph.ct.spacing) * 1e6),
+               "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
+    write_metrics(paths, "phantom", metrics)
+    return metrics

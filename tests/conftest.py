@@ -1,0 +1,23 @@
+"""Shared test fixtures: repository paths and the ../shared sample data (skipped when absent)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("ROOM_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def shared_path(*parts: str) -> Path:
+    """A file under ../shared/data, or skip the test with the reason."""
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared sample data not available: {p}")
+    return p
+
+
+@pytest.fixture
+def repo() -> Path:
+    return REPO

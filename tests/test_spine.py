@@ -1,0 +1,117 @@
+"""The pipeline spine: config composition, dvc.yaml exactness, CLI behaviour on bad input."""
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from room_pipeline import stages
+from room_pipeline.config.compose import compose, compose_yaml
+from room_pipeline.paths import PatientPaths
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "scripts"))
+import stage_deps  # noqa: E402
+import write_dvc_yaml  # noqa: E402
+
+
+def test_params_yaml_is_fresh_composition_of_conf():
+    """params.yaml must equal what `dvc exp run` would compose from conf/ (run `room params`)."""
+    assert (REPO / "params.yaml").read_text(encoding="utf-8") == compose_yaml(conf_dir=REPO / "conf")
+
+
+def test_compose_matches_dvc_own_composition(tmp_path):
+    """`room params` and `dvc exp run -S ...` write the same bytes (same overrides)."""
+    from dvc.utils.hydra import compose_and_dump
+
+    overrides = ["output_dir=elsewhere", "patients=phantom_cohort"]
+    out = tmp_path / "params.yaml"
+    compose_and_dump(out, str(REPO / "conf"), None, "config", str(REPO), overrides)
+    assert out.read_text(encoding="utf-8") == compose_yaml(overrides, conf_dir=REPO / "conf")
+
+
+def test_dvc_yaml_is_generated_from_stage_table():
+    assert (REPO / "dvc.yaml").read_text(encoding="utf-8") == write_dvc_yaml.render(), \
+        "dvc.yaml is stale: run `python scripts/write_dvc_yaml.py`"
+
+
+@pytest.mark.parametrize("name", stages.STAGES)
+def test_dvc_stage_lists_exactly_its_code_deps(name):
+    dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())
+    deps = [d for d in dvc["stages"][name]["do"]["deps"] if d.startswith("src/")]
+    assert sorted(deps) == stage_deps.stage_deps(name)
+    # and the closure is what Python really imports for that stage
+    code = ("import sys, room_pipeline.cli, room_pipeline.stages.%s as m;"
+            "print('\\n'.join(sorted(k for k in sys.modules if k.startswith('room_pipeline'))))" % name)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    imported = {str(Path(importlib.util.find_spec(m).origin).relative_to(REPO)) for m in out}
+    assert imported <= set(deps), f"imported but not listed: {sorted(imported - set(deps))}"
+
+
+@pytest.mark.parametrize("name", stages.STAGES)
+def test_dvc_stage_outs_match_stage_module(name):
+    cfg = compose(conf_dir=REPO / "conf")
+    dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())
+    st = dvc["stages"][name]
+    patients = cfg.phantoms if st["foreach"] == "${phantoms}" else cfg.patients
+    for key in patients:
+        def render(s: str) -> str:
+            return s.replace("${output_dir}", cfg.output_dir).replace("${key}", key)
+        outs = {render(o) for o in st["do"].get("outs", [])}
+        outs |= {render(next(iter(m))) if isinstance(m, dict) else render(m) for m in st["do"]["metrics"]}
+        module = stages.load(name)
+        declared = {str(p) for p in module.outputs(cfg, key)} | {str(PatientPaths(Path(cfg.output_dir), key).metrics(
+            "anatomy_validation" if name == "validate_anatomy" else name))}
+        assert outs == declared
+        for p in st["do"]["params"]:
+            node = cfg
+            for part in p.replace("${key}", key).split("."):
+                assert part in node, f"{name}: param {p} not in config"
+                node = node[part]
+
+
+def _room(*args, cwd=REPO):
+    return subprocess.run([sys.executable, "-m", "room_pipeline.cli", *args], cwd=cwd,
+                          capture_output=True, text=True)
+
+
+def test_cli_params_check_ok():
+    r = _room("params", "--check")
+    assert r.returncode == 0, r.stderr
+
+
+def test_cli_unknown_stage_and_patient_one_line_errors(tmp_path):
+    r = _room("stage", "nosuchstage", "--patient", "patient_000")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "unknown stage" in r.stderr
+    r = _room("stage", "segment", "--patient", "nobody", f"output_dir={tmp_path}")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "unknown patient" in r.stderr
+
+
+@pytest.mark.parametrize("case", ["missing", "unreadable", "not3d", "no_air", "empty_mask"])
+def test_bad_input_exits_nonzero_with_one_line_and_no_outputs(tmp_path, case):
+    import nibabel as nib
+    import numpy as np
+
+    kind, path = "ct", tmp_path / "in.nii.gz"
+    if case == "missing":
+        path = tmp_path / "does_not_exist.nii.gz"
+    elif case == "unreadable":
+        path.write_bytes(b"\x00garbage")
+    elif case == "not3d":
+        nib.save(nib.Nifti1Image(np.zeros((8, 8), np.int16), np.eye(4)), path)
+    elif case == "no_air":
+        nib.save(nib.Nifti1Image(np.full((20, 20, 20), 40, np.int16), np.eye(4)), path)
+    elif case == "empty_mask":
+        kind = "mask"
+        nib.save(nib.Nifti1Image(np.zeros((20, 20, 20), np.uint8), np.eye(4)), path)
+    out = tmp_path / "out"
+    r = _room("stage", "segment", "--patient", "p", f"output_dir={out}",
+              f"+patients.p.kind={kind}", f"+patients.p.input={path}")
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("room: error:"), r.stderr
+    assert not out.exists() or not any(p.is_file() for p in out.rglob("*"))
