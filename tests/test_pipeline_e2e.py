@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 #: a small phantom so the whole chain runs in seconds (coarse voxels, fewer generations)
-SMALL = ["phantom.spacing_mm=[1.2,1.2,1.2]", "phantom.max_generations=5"]
+SMALL = ["phantom.spacing_mm=[1.2,1.2,1.2]", "phantom.max_generation=5"]
 
 pytestmark = pytest.mark.slow
 

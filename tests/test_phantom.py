@@ -1,0 +1,294 @@
+"""Tests of the procedural phantom (room_pipeline.anatomy.phantom)."""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from room_pipeline.anatomy.phantom import (Phantom, PhantomParams, grow_tree, kitaoka_angle,
+                                           lung_signed_distance, make_phantom, wall_thickness)
+from room_pipeline.anatomy.tree import nearest_branch
+from room_pipeline.conventions import MM
+from room_pipeline.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+SCHMIDT_CSV = Path(os.environ.get("ROOM_SHARED_DATA", REPO.parent / "shared" / "data")) \
+    / "airway_trees" / "schmidt2004" / "TreeData.csv"
+
+#: coarse, cheap variant used by most tests (about 2 M voxels)
+SMALL = dict(spacing_mm=1.5, min_diameter_mm=3.0, lung_points=6000)
+
+
+@pytest.fixture(scope="module")
+def small() -> Phantom:
+    return make_phantom(PhantomParams.from_dict(SMALL), seed=3)
+
+
+@pytest.fixture(scope="module")
+def default_tree():
+    return grow_tree(PhantomParams(), np.random.default_rng(0))
+
+
+# ----------------------------------------------------------------------------- config
+
+
+def test_unknown_key_is_config_error():
+    with pytest.raises(ConfigError, match="unknown config key 'trachea_diam'"):
+        PhantomParams.from_dict({"trachea_diam": 17})
+    with pytest.raises(ConfigError):
+        PhantomParams.from_dict({"spacing_mm": [1.0, -1.0, 1.0]})
+    with pytest.raises(ConfigError):
+        PhantomParams.from_dict({"min_diameter_mm": "two"})
+
+
+def test_yaml_lists_every_field_with_its_default():
+    d = yaml.safe_load((REPO / "conf" / "phantom" / "default.yaml").read_text())
+    assert set(d) == {f.name for f in dataclasses.fields(PhantomParams)}
+    assert PhantomParams.from_dict(d) == PhantomParams()
+    assert PhantomParams.from_dict({"spacing_mm": 0.9}).spacing_mm == (0.9, 0.9, 0.9)
+
+
+# ----------------------------------------------------------------------------- tree
+
+
+def _check_rooted_tree(tree):
+    ids = [b.id for b in tree.branches]
+    assert len(ids) == len(set(ids))
+    roots = [b for b in tree.branches if b.parent == -1]
+    assert len(roots) == 1 and roots[0].id == 0 and roots[0].generation == 0
+    for b in tree.branches:
+        if b.parent == -1:
+            continue
+        p = tree.branch(b.parent)
+        assert b.generation == p.generation + 1
+        np.testing.assert_array_equal(b.start, p.end)  # children start at the parent's end
+        assert b.radius < p.radius
+        assert b.length > 0
+        assert len(tree.children(p.id)) <= 2
+
+
+def test_default_tree_is_valid_and_deep(default_tree):
+    t = default_tree
+    _check_rooted_tree(t)
+    gens = np.array([b.generation for b in t.branches])
+    assert t.max_generation >= 6
+    assert all((gens == g).any() for g in range(7))
+    # every branch at least min_diameter across: several voxels at 0.7 mm
+    assert min(b.radius for b in t.branches) * 2 >= 2.0 * MM - 1e-12
+
+
+def test_trachea_and_main_bronchi(default_tree):
+    t = default_tree
+    tr = t.branch(0)
+    assert tr.name == "trachea"
+    assert 16 * MM <= 2 * tr.radius <= 18 * MM
+    assert 100 * MM <= tr.length <= 120 * MM
+    np.testing.assert_allclose(tr.direction, [0, 0, -1])
+    rmb, lmb = t.children(0)
+    assert (rmb.name, lmb.name) == ("RMB", "LMB")
+    assert rmb.end[0] > 0 > lmb.end[0]  # RAS+: right is +x
+    angle = lambda b: np.degrees(np.arccos(-b.direction[2]))  # noqa: E731  angle to the tracheal axis
+    assert angle(rmb) < angle(lmb)     # right main bronchus steeper ...
+    assert rmb.length < lmb.length     # ... and shorter
+    assert rmb.radius > lmb.radius     # and wider (it supplies the larger lung)
+
+
+def test_radius_decreases_with_generation(default_tree):
+    gens = np.array([b.generation for b in default_tree.branches])
+    rad = np.array([b.radius for b in default_tree.branches])
+    means = [rad[gens == g].mean() for g in range(7)]
+    assert all(a > b for a, b in zip(means, means[1:]))
+    assert np.corrcoef(gens, rad)[0, 1] < -0.5
+
+
+def test_kitaoka_rules(default_tree):
+    """Flow-diameter rule d0^n = d1^n + d2^n and the flow-based branching angles."""
+    n = PhantomParams().flow_exponent
+    checked = 0
+    for p in default_tree.branches:
+        kids = default_tree.children(p.id)
+        if p.generation < 1 or len(kids) != 2:
+            continue
+        r = [(k.radius / p.radius) ** n for k in kids]
+        assert sum(r) == pytest.approx(1.0, rel=1e-9)
+        for k, rk in zip(kids, r):
+            ang = np.arccos(np.clip(p.direction @ k.direction, -1, 1))
+            assert ang == pytest.approx(kitaoka_angle(rk, n), abs=1e-6)
+        checked += 1
+    assert checked > 20
+    # symmetric split: cos(theta) = 1 / (2 * 0.5^(2/n)), about 37.5 deg for n = 2.8
+    assert kitaoka_angle(0.5, 2.8) == pytest.approx(np.arccos(1 / (2 * 0.5 ** (2 / 2.8))))
+    assert kitaoka_angle(0.1) > kitaoka_angle(0.5)  # the minor daughter bends more
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_random_seeds_stay_in_lungs_and_deep(seed):
+    params = PhantomParams()
+    tree = grow_tree(params, np.random.default_rng(seed))
+    assert tree.max_generation >= 6
+    _check_rooted_tree(tree)
+    # beyond the main bronchi every branch ends inside a lung; one that starts with its
+    # capsule inside a lung keeps its whole capsule inside
+    for b in tree.branches:
+        if b.generation < 2:
+            continue
+        sd = lung_signed_distance(np.stack([b.start, b.end]), params)
+        assert sd[1] <= 1e-9
+        if sd[0] <= -b.radius:
+            assert sd[1] <= -b.radius + 1e-9
+
+
+# ----------------------------------------------------------------------------- volumes
+
+
+def test_determinism(small):
+    again = make_phantom(PhantomParams.from_dict(SMALL), seed=3)
+    assert again.ct.data.tobytes() == small.ct.data.tobytes()
+    assert again.sdf.data.tobytes() == small.sdf.data.tobytes()
+    np.testing.assert_array_equal(again.ct.affine, small.ct.affine)
+    other = grow_tree(PhantomParams.from_dict(SMALL), np.random.default_rng(4))
+    assert len(other) != len(small.tree) or any(
+        not np.array_equal(a.end, b.end) for a, b in zip(other.branches, small.tree.branches))
+
+
+def test_volume_types_and_affine(small):
+    ph = small
+    assert ph.ct.data.dtype == np.int16 and ph.mask.data.dtype == np.uint8
+    assert ph.sdf.data.dtype == np.float32 and ph.sdf_exact.data.dtype == bool
+    for v in (ph.mask, ph.sdf, ph.sdf_exact):
+        assert v.shape == ph.ct.shape
+        np.testing.assert_array_equal(v.affine, ph.ct.affine)
+    A = ph.ct.affine
+    np.testing.assert_allclose(A[:3, :3], np.diag([1.5 * MM] * 3))
+    assert ph.ct.superior_axis() == (2, 1)
+    # the whole tree, including the trachea's top end, is inside the field of view
+    lo, hi = ph.tree.bounds()
+    ijk_lo, ijk_hi = ph.ct.world_to_index(np.stack([lo, hi]))
+    assert np.all(ijk_lo >= 0) and np.all(ijk_hi <= np.array(ph.ct.shape) - 1)
+    assert ph.mask.data[:, :, -1].sum() == 0
+
+
+def test_mask_sdf_and_exact(small):
+    ph = small
+    np.testing.assert_array_equal(ph.mask.data, (ph.sdf.data < 0).astype(np.uint8))
+    band = PhantomParams.from_dict(SMALL).sdf_band_mm * MM
+    assert ph.sdf.data.max() <= band + 1e-9
+    assert ph.sdf.data.min() >= -ph.tree.branch(0).radius - 1e-6
+    # stored values equal the whole tree's AirwayTree.sdf where inside the band
+    rng = np.random.default_rng(0)
+    near = np.argwhere(np.abs(ph.sdf.data) < band)
+    lumen = np.argwhere(ph.mask.data > 0)
+    pick = np.concatenate([near[rng.choice(len(near), 3000)], lumen[rng.choice(len(lumen), 1000)]])
+    ref, ref_exact = ph.tree.sdf(ph.ct.index_to_world(pick))
+    got = ph.sdf.data[tuple(pick.T)]
+    np.testing.assert_allclose(got, ref, atol=1e-6)
+    np.testing.assert_array_equal(ph.sdf_exact.data[tuple(pick.T)], ref_exact)
+    # clipped far field is not flagged exact; most of the band is
+    assert not ph.sdf_exact.data[ph.sdf.data >= band].any()
+    assert ph.sdf_exact.data[np.abs(ph.sdf.data) < band].mean() > 0.9
+
+
+def test_hu_layers_exact_without_scanner_model():
+    """Without PSF, noise and texture every pure voxel has its layer's HU."""
+    params = PhantomParams.from_dict({**SMALL, "spacing_mm": 1.2, "psf_sigma_voxels": 0, "noise_sigma_hu": 0,
+                                      "texture_sigma_hu": 0})
+    ph = make_phantom(params, seed=1)
+    ct, sdf = ph.ct.data, ph.sdf.data
+    h = 1.2 * MM
+    assert np.all(ct[sdf < -h / 2] == -1000)
+    assert np.all(ct[:2, :2, :] == -1000)  # corners: air outside the body
+    # wall interior voxels (farther than h/2 from both wall surfaces)
+    idx = np.argwhere((sdf > h / 2) & (sdf < 5 * MM))
+    pts = ph.ct.index_to_world(idx)
+    _, bid = nearest_branch(ph.tree.centreline(0.5 * MM), pts)
+    t = wall_thickness(np.array([ph.tree.branch(b).radius for b in bid]), params)
+    inner = sdf[tuple(idx.T)] < t - h / 2
+    assert inner.sum() > 100
+    assert np.all(ct[tuple(idx[inner].T)] == 40)
+    # deep parenchyma
+    far = np.argwhere(sdf >= 5 * MM)[::7]
+    deep = lung_signed_distance(ph.ct.index_to_world(far), params) < -2 * h
+    assert np.all(ct[tuple(far[deep].T)] == -850)
+
+
+def test_hu_ranges_realistic(small):
+    ph, params = small, PhantomParams.from_dict(SMALL)
+    ct, sdf = ph.ct.data.astype(float), ph.sdf.data
+    assert -1010 < ct[sdf < -3 * MM].mean() < -980          # lumen
+    far = np.argwhere(sdf >= 5 * MM)[::5]
+    lung = lung_signed_distance(ph.ct.index_to_world(far), params) < -5 * MM
+    par = ct[tuple(far[lung].T)]
+    assert -870 < par.mean() < -830 and 20 < par.std() < 60  # textured parenchyma + noise
+    # intrapulmonary airway walls stand out from the parenchyma
+    assert ct[(sdf > 0) & (sdf < 1.5 * MM)].mean() > par.mean() + 150
+    assert ct.min() >= -1024 and ct.max() < 400
+
+
+def test_crop_top_cuts_trachea():
+    params = PhantomParams.from_dict({**SMALL, "spacing_mm": 2.0, "crop_top_mm": 20.0})
+    ph = make_phantom(params, seed=3)
+    top = ph.ct.index_to_world(np.array([[0, 0, ph.ct.shape[2] - 1]]))[0, 2]
+    assert top <= ph.tree.branch(0).start[2] - 20 * MM + 1e-9
+    assert ph.mask.data[:, :, -1].sum() > 10  # the trachea leaves through the top slice
+    assert (ph.ct.data[:, :, -1][ph.mask.data[:, :, -1] > 0] < -500).all()
+
+
+def test_anisotropic_spacing():
+    params = PhantomParams.from_dict({**SMALL, "spacing_mm": [1.4, 1.6, 2.2]})
+    ph = make_phantom(params, seed=3)
+    np.testing.assert_allclose(ph.ct.spacing, np.array([1.4, 1.6, 2.2]) * MM)
+    np.testing.assert_array_equal(ph.mask.data, (ph.sdf.data < 0).astype(np.uint8))
+    # lumen volume close to the tree's analytic volume estimate (within PV / overlap slack)
+    vox = np.prod(ph.ct.spacing)
+    approx = sum(np.pi * b.radius ** 2 * b.length for b in ph.tree.branches)
+    assert 0.7 < ph.mask.data.sum() * vox / approx < 1.3
+
+
+def test_default_size_run():
+    """The one default-size run: figures, time and the trachea inside the volume."""
+    t0 = time.perf_counter()
+    ph = make_phantom(PhantomParams(), seed=0)
+    wall = time.perf_counter() - t0
+    n = int(np.prod(ph.ct.shape))
+    print(f"default phantom: shape {ph.ct.shape}, {n / 1e6:.1f} M voxels, {len(ph.tree)} branches, "
+          f"max generation {ph.tree.max_generation}, {wall:.1f} s")
+    assert 15e6 < n < 45e6
+    assert wall < 60
+    assert ph.tree.max_generation >= 6
+    assert ph.mask.data[:, :, -1].sum() == 0 and ph.mask.data.sum() > 0
+    np.testing.assert_allclose(ph.ct.spacing, 0.7 * MM)
+    # HU at 0.7 mm: lumen, trachea wall (mid-wall, in the mediastinum), parenchyma
+    params = PhantomParams()
+    ct, sdf = ph.ct.data, ph.sdf.data
+    assert -1010 < ct[sdf < -3 * MM].mean() < -980
+    k0, k1 = (int(round(v)) for v in ph.ct.world_to_index(np.array([[0, 0, 20 * MM], [0, 0, 90 * MM]]))[:, 2])
+    t = wall_thickness(ph.tree.branch(0).radius, params)
+    s = sdf[:, :, k0:k1]
+    wall = ct[:, :, k0:k1][(s > 0.35 * t) & (s < 0.75 * t)]
+    assert 0 < wall.mean() < 80
+
+
+# ----------------------------------------------------------------------------- reference data
+
+
+def test_radius_matches_schmidt_generations_0_to_5(default_tree):
+    if not SCHMIDT_CSV.is_file():
+        pytest.skip(f"Schmidt 2004 reference tree not available: {SCHMIDT_CSV}")
+    with SCHMIDT_CSV.open() as fh:
+        rows = list(csv.DictReader(fh))
+    ref_g = np.array([int(r["generation"]) for r in rows])
+    ref_r = np.array([float(r["radius"]) for r in rows]) * MM
+    gens = np.array([b.generation for b in default_tree.branches])
+    rad = np.array([b.radius for b in default_tree.branches])
+    for g in range(6):
+        ratio = rad[gens == g].mean() / ref_r[ref_g == g].mean()
+        assert 0.5 <= ratio <= 2.0, f"generation {g}: phantom/Schmidt radius ratio {ratio:.2f}"
