@@ -114,7 +114,9 @@ class AirwayTree:
         """Signed distance (metres) of the lumen union at ``points`` (N, 3).
 
         Returns ``(sdf, exact)``: ``exact`` is False where the value is only a
-        bound (inside, foot point covered by another capsule).  With ``band``
+        bound (inside, nearest capsule surface covered by another capsule: the
+        value is then the depth inside the deepest containing capsule, a lower
+        bound on the true distance that keeps the sign right).  With ``band``
         set, capsules farther than ``band`` from a point are skipped and the
         returned value is clipped to ``band`` (faster for narrow-band use).
         """
@@ -159,21 +161,27 @@ class AirwayTree:
             ii = np.nonzero(inside)[0]
             absd = np.abs(d_signed[:, ii])
             k = absd.argmin(axis=0)
-            sdf[ii] = -absd[k, np.arange(len(ii))]
             foot = feet[k, ii]
-            # foot point covered by another capsule (strictly inside it)?
-            covered = np.zeros(len(ii), dtype=bool)
-            for bi, b in enumerate(self.branches):
-                mask = k != bi
-                if not mask.any():
-                    continue
-                _, dist = _segment_closest(foot[mask], b.start, b.end)
-                cov = dist < b.radius - 1e-12
-                covered[np.nonzero(mask)[0][cov]] = True
-            exact[ii] = ~covered
+            exposed = ~self._covered(foot, k)
+            # exposed nearest foot point: the exact distance to the union boundary.  Otherwise the
+            # nearest capsule surface is hidden inside another capsule; report the depth inside the
+            # deepest containing capsule (a strict lower bound, never 0 for an interior point).
+            sdf[ii] = np.where(exposed, -absd[k, np.arange(len(ii))], outside_val[ii])
+            exact[ii] = exposed
         if band is not None:
             sdf = np.clip(sdf, -band, band)
         return sdf, exact
+
+    def _covered(self, foot: np.ndarray, owner: np.ndarray) -> np.ndarray:
+        """Whether each foot point lies strictly inside a capsule other than its owner."""
+        covered = np.zeros(len(foot), dtype=bool)
+        for bi, b in enumerate(self.branches):
+            mask = owner != bi
+            if not mask.any():
+                continue
+            _, dist = _segment_closest(foot[mask], b.start, b.end)
+            covered[np.nonzero(mask)[0][dist < b.radius - 1e-12]] = True
+        return covered
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Boolean: inside the lumen union."""

@@ -1,0 +1,533 @@
+"""Closed-form kinematics of the ROOM continuum bronchoscope (3 DoF, constant curvature).
+
+Model
+    Kirchhoff reduction of a Cosserat rod along the distal bending segment,
+    arc length ``s`` in [0, l] (m)::
+
+        dr/ds = R e3,   dR/ds = R hat(u),   u = [kappa(q1), 0, 0] (constant strain, 1/m)
+        r(0) = [0, 0, q3],   R(0) = Rot_z(q2),   kappa(q1) = -q1 / (2 gamma l)
+
+    Joints: ``q1`` (m) the antagonistic tendon differential, limited to
+    [-q1_max, q1_max] (bending); ``q2`` (rad) the axial rotation of the bending
+    plane, any real; ``q3`` (m) the insertion, any real.  The solution is
+    ``R(s) = Rot_z(q2) Rot_x(theta)`` with ``theta = kappa s`` and
+    ``r(s) = [0, 0, q3] + Rot_z(q2) [0, -(1 - cos theta)/kappa, sin(theta)/kappa]``.
+
+Base frame (robot base, SI metres/radians)
+    +z is the insertion axis (the direction the scope advances); ``q3`` moves the
+    base of the bending segment to ``[0, 0, q3]``.  At ``q2 = 0`` the segment bends
+    in the base y-z plane: towards -y for ``q1 < 0`` (``kappa > 0``), towards +y
+    for ``q1 > 0``; ``q2`` turns that plane right-handedly about +z.  Placing the
+    base in the CT world (RAS+) is a later stage's job.
+
+Tip frame (the columns of ``fk(q)[:3, :3]``)
+    z = the backbone tangent at ``s`` = the viewing direction; x = the bending
+    axis ``Rot_z(q2) e1`` (constant along the segment); y = z cross x.  With
+    ``kappa > 0`` the tangent turns towards the tip's -y.
+
+Tip camera
+    The camera's OpenCV frame (x right, y down, z forward) *is* the tip frame
+    for a camera on the tip axis with zero roll, so ``fk(q)`` is directly the
+    camera-to-base pose (4x4, :data:`room_pipeline.conventions.POSE_CONVENTION`);
+    ``kappa > 0`` (``q1 < 0``) then bends the view towards the image top (-y).
+
+Joint limits
+    :func:`fk` and :func:`jacobian` evaluate any finite ``q`` (beyond
+    ``|q1| > q1_max`` the constant-curvature model is merely extrapolated);
+    :func:`clamp_q` and :func:`ik` enforce ``|q1| <= q1_max``.  ``q2`` and ``q3``
+    have no limits.
+
+Numerics
+    Every ``1/kappa`` is written through ``sinc(x) = sin(x)/x`` and
+    ``cosc(x) = (1 - cos x)/x^2 = sinc(x/2)^2 / 2`` (no 0/0 at ``kappa = 0``);
+    ``sinc`` switches to its Taylor series for ``|x| < 0.1`` and the Jacobian's
+    ``(sin x - x cos x)/x^2`` for ``|x| < 2``, where both branches agree to about
+    one ulp, so values and first derivatives are continuous across the switches.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..errors import ConfigError
+
+#: ``theta`` (rad) where the lateral tip offset ``(1 - cos theta)/kappa`` peaks for a given
+#: arc length (``tan(theta/2) = theta``); position-only IK stays on ``|theta| <= THETA_TURN``.
+THETA_TURN = 2.331122370414423
+
+_SINC_SWITCH = 0.1
+# sin(x)/x = sum_k (-1)^k x^(2k) / (2k+1)!, through x^8 (next term < 3e-18 at the switch)
+_SINC_COEFFS = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(5))
+_D_SWITCH = 2.0
+# (sin x - x cos x)/x^2 = x * sum_{k>=1} (-1)^(k+1) 2k x^(2k-2) / (2k+1)!, 14 terms
+# (next term < 3e-24 relative at the switch)
+_D_COEFFS = tuple((-1) ** (k + 1) * 2 * k / math.factorial(2 * k + 1) for k in range(1, 15))
+
+
+@dataclasses.dataclass(frozen=True)
+class ScopeGeometry:
+    """Geometry of the bending segment.
+
+    Attributes:
+        l: bending-segment length, m.
+        gamma: tendon offset from the backbone (the ``gamma`` of ``kappa = -q1/(2 gamma l)``), m.
+        q1_max: tendon-differential limit, m (``|q1| <= q1_max``).
+    """
+
+    l: float = 0.05
+    gamma: float = 1.75e-3
+    q1_max: float = 0.008
+
+    def __post_init__(self) -> None:
+        for name in ("l", "gamma", "q1_max"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"robot.{name} must be a number, got {value!r}")
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"robot.{name} must be finite and > 0, got {value!r}")
+            object.__setattr__(self, name, float(value))
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> "ScopeGeometry":
+        """Build from a config mapping; an unknown key raises :class:`ConfigError` naming it."""
+        d = dict(d or {})
+        known = [f.name for f in dataclasses.fields(cls)]
+        for key in sorted(d, key=str):
+            if key not in known:
+                raise ConfigError(f"robot: unknown key '{key}' (known: {', '.join(known)})")
+        return cls(**d)
+
+    @property
+    def kappa_max(self) -> float:
+        """Largest curvature magnitude, ``q1_max / (2 gamma l)``, 1/m."""
+        return self.q1_max / (2.0 * self.gamma * self.l)
+
+    @property
+    def theta_max(self) -> float:
+        """Largest bending angle of the whole segment, ``kappa_max * l``, rad."""
+        return self.kappa_max * self.l
+
+
+DEFAULT_GEOMETRY = ScopeGeometry()
+
+
+@dataclasses.dataclass(frozen=True)
+class IKResult:
+    """Result of :func:`ik`.
+
+    Attributes:
+        q: joint vector ``[q1 (m), q2 (rad), q3 (m)]``, always within the joint limits.
+        position_error_m: ``|p(q) - p_target|``, m.
+        direction_error_rad: angle between the tip direction and the target direction, rad
+            (0.0 when no direction was asked for).
+        reachable: both errors within the requested tolerances.
+        iterations: Newton (position-only) or Levenberg-Marquardt iterations spent (0: closed form).
+    """
+
+    q: np.ndarray
+    position_error_m: float
+    direction_error_rad: float
+    reachable: bool
+    iterations: int
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _sinc(x: np.ndarray) -> np.ndarray:
+    """sin(x)/x, 1 at 0; Taylor series for |x| < 0.1."""
+    small = np.abs(x) < _SINC_SWITCH
+    xs = np.where(small, x, 0.0)
+    x2 = xs * xs
+    series = np.zeros_like(x2)
+    for c in reversed(_SINC_COEFFS):
+        series = series * x2 + c
+    xl = np.where(small, 1.0, x)
+    return np.where(small, series, np.sin(xl) / xl)
+
+
+def _cosc(x: np.ndarray) -> np.ndarray:
+    """(1 - cos x)/x^2, 1/2 at 0 (as sinc(x/2)^2/2: no cancellation)."""
+    h = _sinc(0.5 * x)
+    return 0.5 * h * h
+
+
+def _dsinc(x: np.ndarray) -> np.ndarray:
+    """(sin x - x cos x)/x^2 = -d sinc/dx, ~x/3 at 0; Taylor series for |x| < 2."""
+    small = np.abs(x) < _D_SWITCH
+    xs = np.where(small, x, 0.0)
+    x2 = xs * xs
+    series = np.zeros_like(x2)
+    for c in reversed(_D_COEFFS):
+        series = series * x2 + c
+    xl = np.where(small, 1.0, x)
+    return np.where(small, xs * series, (np.sin(xl) - xl * np.cos(xl)) / (xl * xl))
+
+
+def _joints_and_s(q, s, geometry: ScopeGeometry):
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 0 or q.shape[-1] != 3:
+        raise ValueError(f"q must have shape (..., 3) [q1 m, q2 rad, q3 m], got {q.shape}")
+    s = np.asarray(geometry.l if s is None else s, dtype=float)
+    if not np.all((s >= 0.0) & (s <= geometry.l)):
+        raise ValueError(f"arc length s must lie in [0, l = {geometry.l}] m, got {s}")
+    q1, q2, q3, s = np.broadcast_arrays(q[..., 0], q[..., 1], q[..., 2], s)
+    return q1, q2, q3, s
+
+
+def kappa(q1, geometry: ScopeGeometry = DEFAULT_GEOMETRY):
+    """Curvature (1/m) of the bending segment for tendon differential ``q1`` (m): ``-q1/(2 gamma l)``."""
+    return -np.asarray(q1, dtype=float) / (2.0 * geometry.gamma * geometry.l)
+
+
+def clamp_q(q, geometry: ScopeGeometry = DEFAULT_GEOMETRY) -> np.ndarray:
+    """``q`` (shape (..., 3)) with ``q1`` clipped to ``[-q1_max, q1_max]``; ``q2``, ``q3`` unchanged."""
+    q = np.array(q, dtype=float)
+    if q.ndim == 0 or q.shape[-1] != 3:
+        raise ValueError(f"q must have shape (..., 3) [q1 m, q2 rad, q3 m], got {q.shape}")
+    q[..., 0] = np.clip(q[..., 0], -geometry.q1_max, geometry.q1_max)
+    return q
+
+
+# --------------------------------------------------------------------------- forward kinematics
+
+
+def fk(q, s=None, *, geometry: ScopeGeometry = DEFAULT_GEOMETRY) -> np.ndarray:
+    """Tip pose in the base frame at arc length ``s`` (m, default ``l``), closed form.
+
+    Args:
+        q: joints ``[q1 (m), q2 (rad), q3 (m)]``, shape (..., 3); any finite q1 is evaluated.
+        s: arc length(s) in [0, l], m, broadcast against ``q[..., 0]``; ``None`` means the tip.
+        geometry: the scope geometry.
+
+    Returns:
+        (..., 4, 4) homogeneous transforms tip-to-base: columns of the rotation are the tip
+        x (bending axis), y and z (tangent = view direction) axes; the last column the position, m.
+    """
+    q1, q2, q3, s = _joints_and_s(q, s, geometry)
+    theta = kappa(q1, geometry) * s
+    lateral = s * theta * _cosc(theta)      # (1 - cos(kappa s)) / kappa
+    axial = s * _sinc(theta)                # sin(kappa s) / kappa
+    c2, s2 = np.cos(q2), np.sin(q2)
+    ct, st = np.cos(theta), np.sin(theta)
+    T = np.zeros(q1.shape + (4, 4))
+    T[..., 0, 0] = c2
+    T[..., 1, 0] = s2
+    T[..., 0, 1] = -s2 * ct
+    T[..., 1, 1] = c2 * ct
+    T[..., 2, 1] = st
+    T[..., 0, 2] = s2 * st
+    T[..., 1, 2] = -c2 * st
+    T[..., 2, 2] = ct
+    T[..., 0, 3] = s2 * lateral
+    T[..., 1, 3] = -c2 * lateral
+    T[..., 2, 3] = q3 + axial
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def jacobian(q, s=None, *, geometry: ScopeGeometry = DEFAULT_GEOMETRY) -> np.ndarray:
+    """Analytic Jacobian of (tip position (m), tip direction (unit)) with respect to q.
+
+    Returns:
+        (..., 6, 3): rows ``[px, py, pz, tx, ty, tz]`` of :func:`fk`'s position and z axis,
+        columns ``[q1 (m), q2 (rad), q3 (m)]``.  Continuous through ``kappa = 0``.
+    """
+    q1, q2, q3, s = _joints_and_s(q, s, geometry)
+    dk = -1.0 / (2.0 * geometry.gamma * geometry.l)          # d kappa / d q1
+    theta = kappa(q1, geometry) * s
+    sinc = _sinc(theta)
+    lateral = s * theta * _cosc(theta)
+    d_lateral = s * s * (sinc - _cosc(theta)) * dk          # d lateral / d q1
+    d_axial = -s * s * _dsinc(theta) * dk                   # d axial / d q1
+    c2, s2 = np.cos(q2), np.sin(q2)
+    ct, st = np.cos(theta), np.sin(theta)
+    J = np.zeros(q1.shape + (6, 3))
+    J[..., 0, 0] = s2 * d_lateral
+    J[..., 1, 0] = -c2 * d_lateral
+    J[..., 2, 0] = d_axial
+    J[..., 0, 1] = c2 * lateral
+    J[..., 1, 1] = s2 * lateral
+    J[..., 2, 2] = 1.0
+    J[..., 3, 0] = s * dk * s2 * ct
+    J[..., 4, 0] = -s * dk * c2 * ct
+    J[..., 5, 0] = -s * dk * st
+    J[..., 3, 1] = c2 * st
+    J[..., 4, 1] = s2 * st
+    return J
+
+
+# --------------------------------------------------------------------------- inverse kinematics
+
+
+def _angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    return float(math.atan2(np.linalg.norm(np.cross(a, b)), float(np.dot(a, b))))
+
+
+def _wrap_near(angle: float, ref: float) -> float:
+    """``angle`` shifted by a multiple of 2 pi into (ref - pi, ref + pi]."""
+    return ref - math.remainder(ref - angle, 2.0 * math.pi)
+
+
+def _pick_branch(q: np.ndarray, q0: np.ndarray) -> np.ndarray:
+    """Of the two equivalent joint vectors ``(q1, q2)`` and ``(-q1, q2 + pi)`` (same tip position
+    and direction, roll differing by pi) the one whose q2 is nearer q0's; q2 wrapped near q0's."""
+    a = _wrap_near(q[1], q0[1])
+    b = _wrap_near(q[1] + math.pi, q0[1])
+    if q[0] != 0.0 and (abs(b - q0[1]), abs(-q[0] - q0[0])) < (abs(a - q0[1]), abs(q[0] - q0[0])):
+        return np.array([-q[0], b, q[2]])
+    return np.array([q[0], a, q[2]])
+
+
+def _lateral_unit(theta: float) -> float:
+    """(1 - cos theta)/theta: the lateral offset divided by s."""
+    return float(theta * _cosc(np.float64(theta)))
+
+
+def _solve_lateral(c: float, theta_hi: float, max_iter: int = 60) -> tuple[float, int]:
+    """theta in [0, theta_hi] with (1 - cos theta)/theta = c (increasing there); safeguarded Newton.
+
+    Stops when the residual stops shrinking (rounding level: the root is ill-conditioned near
+    THETA_TURN, where the derivative vanishes) and returns the best iterate and the iterations.
+    """
+    lo, hi = 0.0, theta_hi
+    theta = min(2.0 * c, theta_hi)               # (1 - cos t)/t ~ t/2
+    best, best_abs = theta, math.inf
+    for it in range(1, max_iter + 1):
+        f = _lateral_unit(theta) - c
+        if abs(f) >= best_abs and best_abs <= 1e-13 * c:
+            return best, it
+        if abs(f) < best_abs:
+            best, best_abs = theta, abs(f)
+        if f == 0.0:
+            return theta, it
+        if f > 0:
+            hi = theta
+        else:
+            lo = theta
+        df = float(_sinc(np.float64(theta)) - _cosc(np.float64(theta)))
+        new = theta - f / df if df > 0 else 0.5 * (lo + hi)
+        if not (lo <= new <= hi):
+            new = 0.5 * (lo + hi)
+        if new == theta:
+            return theta, it
+        theta = new
+    return best, max_iter
+
+
+def _position_ik(p: np.ndarray, q0: np.ndarray, s: float, geometry: ScopeGeometry):
+    """Closed-form position-only IK (kappa >= 0 branch before :func:`_pick_branch`)."""
+    rho = math.hypot(p[0], p[1])
+    if rho == 0.0:
+        return np.array([0.0, q0[1], p[2] - s]), 0
+    theta_hi = min(geometry.kappa_max * s, THETA_TURN)
+    if s == 0.0:
+        theta, its = 0.0, 0
+    elif rho >= s * _lateral_unit(theta_hi):
+        theta, its = theta_hi, 0                 # unreachable (or on the boundary): radial projection
+    else:
+        theta, its = _solve_lateral(rho / s, theta_hi)
+    k = theta / s if s > 0 else 0.0
+    q1 = 0.0 - 2.0 * geometry.gamma * geometry.l * k
+    q2 = math.atan2(p[0], -p[1])
+    q3 = p[2] - s * float(_sinc(np.float64(theta)))
+    return np.array([q1, q2, q3]), its
+
+
+def _direction_ik(p: np.ndarray, t: np.ndarray, q0: np.ndarray, s: float,
+                  geometry: ScopeGeometry) -> list[np.ndarray]:
+    """Joint vectors pointing the tip along ``t``, with z matched exactly: one per bend
+    ``theta = theta_t + 2 pi k`` within the limits (only k = 0 unless theta_max > pi), or the
+    bend clamped to the limit when ``t`` is out of reach."""
+    sigma = math.hypot(t[0], t[1])
+    theta_t = math.atan2(sigma, t[2])            # [0, pi]
+    q2 = math.atan2(t[0], -t[1]) if sigma > 0.0 else float(q0[1])
+    theta_max = geometry.kappa_max * s
+    k_lo = math.ceil((-theta_max - theta_t) / (2.0 * math.pi))
+    k_hi = math.floor((theta_max - theta_t) / (2.0 * math.pi))
+    thetas = [theta_t + 2.0 * math.pi * k for k in range(k_lo, k_hi + 1)] or [theta_max]
+    out = []
+    for theta in thetas:
+        k = theta / s if s > 0 else 0.0
+        q1 = 0.0 - 2.0 * geometry.gamma * geometry.l * k
+        q3 = p[2] - s * float(_sinc(np.float64(theta)))
+        out.append(np.array([q1, q2, q3]))
+    return out
+
+
+def _pose_start(p: np.ndarray, t: np.ndarray, w: float, q0: np.ndarray, s: float,
+                geometry: ScopeGeometry, n: int = 129) -> np.ndarray:
+    """Global minimiser (to ~1e-9 rad in theta) of ``|p - p*|^2 + w^2 |t - t*|^2`` over the joints.
+
+    With ``q3`` matching z and ``u = (sin q2, -cos q2)`` the cost is
+    ``A^2 + rho^2 + 2 w^2 - 2 u.m - 2 w^2 cos(theta) t*_z`` with ``m = A p*_xy + w^2 sin(theta) t*_xy``
+    (``A`` the lateral offset), so the best ``q2`` points ``u`` along ``m`` and only a 1-D
+    problem in ``theta`` in [0, theta_max] remains (``-theta`` is the ``q2 + pi`` branch):
+    a grid, then golden-section search around the best grid point.
+    """
+    theta_max = geometry.kappa_max * s
+    pxy, txy = p[:2], t[:2]
+
+    def parts(theta):
+        theta = np.asarray(theta, dtype=float)
+        lateral = s * theta * _cosc(theta)
+        m = lateral[..., None] * pxy + (w * w * np.sin(theta))[..., None] * txy
+        cost = lateral**2 - 2.0 * np.hypot(m[..., 0], m[..., 1]) - 2.0 * w * w * np.cos(theta) * t[2]
+        return cost, m
+
+    grid = np.linspace(0.0, theta_max, n)
+    i = int(np.argmin(parts(grid)[0]))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, n - 1)]
+    golden = 0.5 * (math.sqrt(5.0) - 1.0)
+    c, d = b - golden * (b - a), a + golden * (b - a)
+    fc, fd = float(parts(c)[0]), float(parts(d)[0])
+    while b - a > 1e-9:
+        if fc <= fd:
+            b, d, fd = d, c, fc
+            c = b - golden * (b - a)
+            fc = float(parts(c)[0])
+        else:
+            a, c, fc = c, d, fd
+            d = a + golden * (b - a)
+            fd = float(parts(d)[0])
+    theta = 0.5 * (a + b)
+    m = parts(theta)[1]
+    q2 = math.atan2(m[0], -m[1]) if np.any(m != 0.0) else float(q0[1])
+    k = theta / s if s > 0 else 0.0
+    return np.array([0.0 - 2.0 * geometry.gamma * geometry.l * k, q2,
+                     p[2] - s * float(_sinc(np.float64(theta)))])
+
+
+def _lm(q: np.ndarray, p: np.ndarray, t: np.ndarray, w: float, s: float, geometry: ScopeGeometry,
+        max_iter: int) -> tuple[np.ndarray, float, int]:
+    """Levenberg-Marquardt on |p(q) - p*|^2 + w^2 |t(q) - t*|^2 with |q1| <= q1_max (active set)."""
+    scale = np.array([1.0, 1.0, 1.0, w, w, w])
+    q1_max = geometry.q1_max
+
+    def residual(qq):
+        T = fk(qq, s, geometry=geometry)
+        return np.concatenate([T[:3, 3] - p, w * (T[:3, 2] - t)])
+
+    q = clamp_q(q, geometry)
+    r = residual(q)
+    cost = float(r @ r)
+    lam = 1e-3
+    it = 0
+    while it < max_iter and cost >= 1e-32:
+        J = jacobian(q, s, geometry=geometry) * scale[:, None]
+        g = J.T @ r
+        H = J.T @ J
+        free = np.ones(3, dtype=bool)
+        if (q[0] >= q1_max and g[0] < 0.0) or (q[0] <= -q1_max and g[0] > 0.0):
+            free[0] = False                      # the bound is active: keep q1 on it
+        Hf = H[np.ix_(free, free)]
+        d = np.diag(Hf).copy()
+        d = np.maximum(d, 1e-12 * max(float(d.max()), 1e-30))
+        improved = False
+        while lam < 1e16:
+            step = np.zeros(3)
+            try:
+                step[free] = np.linalg.solve(Hf + lam * np.diag(d), -g[free])
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            q_new = clamp_q(q + step, geometry)
+            r_new = residual(q_new)
+            cost_new = float(r_new @ r_new)
+            if cost_new < cost:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+        gain = cost - cost_new
+        q, r, cost = q_new, r_new, cost_new
+        it += 1
+        lam = max(lam / 3.0, 1e-12)
+        if gain <= 1e-15 * cost:
+            break
+    return q, cost, it
+
+
+def ik(target_position, target_direction=None, *, q0=None, s=None,
+       geometry: ScopeGeometry = DEFAULT_GEOMETRY, direction_weight_m: float | None = None,
+       position_tol_m: float = 1e-9, direction_tol_rad: float = 1e-9, max_iter: int = 100) -> IKResult:
+    """Joints putting the point at arc length ``s`` (default the tip) on a target, within the limits.
+
+    Position only (``target_direction=None``): closed form.  The bending plane is
+    ``q2 = atan2(x, -y)``; the bend solves the monotone scalar equation
+    ``(1 - cos theta)/kappa = hypot(x, y)`` (safeguarded Newton to machine precision;
+    ``theta`` restricted to ``[0, min(theta_max, THETA_TURN)]``, the least bend), and
+    ``q3 = z - sin(theta)/kappa``.  The reachable set is the solid cylinder
+    ``hypot(x, y) <= rho_max`` about the base z axis; outside it the result is the
+    exact Euclidean nearest reachable tip position (radial projection, full bend).
+    A target on the axis gives ``q1 = 0`` and keeps ``q0``'s ``q2``.
+
+    Position and direction: the direction fixes ``theta`` and ``q2`` (closed form,
+    ``q3`` then matches z exactly); when that also hits the position the target is
+    reachable.  Otherwise the result is the nearest reachable pose in the metric
+    ``|p - p*|^2 + direction_weight_m^2 |t - t*|^2`` (m^2, ``t`` the unit tip direction):
+    ``q3`` and ``q2`` are eliminated in closed form, the remaining 1-D problem in the
+    bend is searched globally (grid + golden section), and Levenberg-Marquardt with
+    the analytic Jacobian and the q1 bound clamped (active set) polishes the result.
+
+    Two joint vectors, ``(q1, q2)`` and ``(-q1, q2 + pi)``, give the same tip position
+    and direction (roll differs by pi); the one whose ``q2`` is nearer ``q0[1]`` is
+    returned, with ``q2`` wrapped into ``(q0[1] - pi, q0[1] + pi]``.
+
+    Args:
+        target_position: (3,) target in the base frame, m.
+        target_direction: optional (3,) viewing direction (normalised here).
+        q0: reference joints (default zeros): picks the branch and q2 where q2 is free (straight).
+        s: arc length in [0, l] of the controlled point, m (default ``l``: the tip).
+        geometry: the scope geometry.
+        direction_weight_m: length weighting the direction residual, m (default ``l``).
+        position_tol_m, direction_tol_rad: tolerances for ``reachable``.
+        max_iter: iteration cap of the LM polish.
+
+    Raises:
+        ValueError: non-finite or misshaped targets, a zero direction, ``s`` outside [0, l],
+            a negative or non-finite ``direction_weight_m``.
+    """
+    p = np.asarray(target_position, dtype=float)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"target_position must be 3 finite numbers (m), got {target_position!r}")
+    q0 = np.zeros(3) if q0 is None else clamp_q(q0, geometry)
+    if q0.shape != (3,) or not np.all(np.isfinite(q0)):
+        raise ValueError(f"q0 must be 3 finite numbers, got {q0!r}")
+    s = geometry.l if s is None else float(s)
+    if not 0.0 <= s <= geometry.l:
+        raise ValueError(f"arc length s must lie in [0, l = {geometry.l}] m, got {s}")
+
+    def finish(q, its, t=None):
+        q = clamp_q(_pick_branch(q, q0), geometry)
+        T = fk(q, s, geometry=geometry)
+        pos_err = float(np.linalg.norm(T[:3, 3] - p))
+        dir_err = 0.0 if t is None else _angle_between(T[:3, 2], t)
+        ok = pos_err <= position_tol_m and dir_err <= direction_tol_rad
+        return IKResult(q=q, position_error_m=pos_err, direction_error_rad=dir_err,
+                        reachable=bool(ok), iterations=int(its))
+
+    q_pos, its = _position_ik(p, q0, s, geometry)
+    if target_direction is None:
+        return finish(q_pos, its)
+
+    t = np.asarray(target_direction, dtype=float)
+    norm = float(np.linalg.norm(t)) if t.shape == (3,) else 0.0
+    if not (math.isfinite(norm) and norm > 0.0):
+        raise ValueError(f"target_direction must be 3 finite numbers, not all zero, got {target_direction!r}")
+    t = t / norm
+    q_dirs = _direction_ik(p, t, q0, s, geometry)
+    closed = [finish(q, 0, t) for q in q_dirs]
+    first = min(closed, key=lambda res: res.position_error_m)
+    if first.reachable:
+        return first
+    w = geometry.l if direction_weight_m is None else float(direction_weight_m)
+    if not (math.isfinite(w) and w >= 0.0):
+        raise ValueError(f"direction_weight_m must be finite and >= 0 (m), got {direction_weight_m!r}")
+    start = _pose_start(p, t, w, q0, s, geometry)
+    q, _, its = _lm(start, p, t, w, s, geometry, max_iter)
+    return finish(q, its, t)
