@@ -1,0 +1,49 @@
+"""Synthetic capsule trees and ground-truth rasterisation shared by the sdf / mesh benchmarks."""
+from __future__ import annotations
+
+import numpy as np
+
+from room_pipeline.anatomy.tree import AirwayTree, Branch
+from room_pipeline.io.volume import Volume
+
+
+def capsule_tree(generations: int = 4, r0: float = 4e-3, length0: float = 30e-3, ratio: float = 0.75,
+                 seed: int = 0) -> AirwayTree:
+    """Symmetric dichotomous tree of capsules (metres), random branching planes."""
+    rng = np.random.default_rng(seed)
+    br = [Branch(0, -1, 0, [0, 0, 0.0], [0, 0, -length0], r0)]
+    frontier, nid = [0], 1
+    for g in range(1, generations + 1):
+        nxt = []
+        for pid in frontier:
+            p = br[pid]
+            d = p.direction
+            e1 = np.cross(d, [1.0, 0, 0])
+            if np.linalg.norm(e1) < 1e-6:
+                e1 = np.cross(d, [0, 1.0, 0])
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(d, e1)
+            phi = rng.uniform(0, 2 * np.pi)
+            perp = np.cos(phi) * e1 + np.sin(phi) * e2
+            for s in (-1, 1):
+                a = np.deg2rad(35) * s
+                nd = np.cos(a) * d + np.sin(a) * perp
+                br.append(Branch(nid, pid, g, p.end, p.end + 0.8 * p.length * nd, p.radius * ratio))
+                nxt.append(nid)
+                nid += 1
+        frontier = nxt
+    return AirwayTree(br)
+
+
+def rasterise(tree: AirwayTree, spacing, margin: float = 5e-3) -> tuple[Volume, Volume]:
+    """(true mask uint8, true SDF float32 metres) at voxel centres of a grid around the tree."""
+    spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
+    lo, hi = tree.bounds(margin)
+    shape = tuple(int(n) for n in np.ceil((hi - lo) / spacing).astype(int) + 1)
+    aff = np.eye(4)
+    aff[:3, :3] = np.diag(spacing)
+    aff[:3, 3] = lo
+    grid = Volume(np.zeros(shape, np.uint8), aff)
+    d, _ = tree.sdf(grid.index_to_world(np.indices(shape).reshape(3, -1).T), band=0.02)
+    d = d.reshape(shape)
+    return grid.with_data((d < 0).astype(np.uint8)), grid.with_data(d.astype(np.float32))

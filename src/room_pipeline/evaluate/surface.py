@@ -1,0 +1,107 @@
+"""Accuracy of an estimated SDF and of a lumen mesh against an analytic :class:`AirwayTree`.
+
+All distances are returned in metres (keys ``*_m``) and in voxels of a given
+size (keys ``*_vox``).  Only points where the tree's signed distance is exact
+(see :meth:`AirwayTree.sdf`) enter the figures.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..anatomy.tree import AirwayTree
+from ..io.mesh import Mesh
+from ..io.volume import Volume
+
+
+def _stats(err: np.ndarray, voxel: float, prefix: str) -> dict:
+    err = np.abs(np.asarray(err, dtype=np.float64))
+    if err.size == 0:
+        return {f"{prefix}n": 0}
+    mean, p95, mx = float(err.mean()), float(np.percentile(err, 95)), float(err.max())
+    return {f"{prefix}n": int(err.size),
+            f"{prefix}mean_m": mean, f"{prefix}p95_m": p95, f"{prefix}max_m": mx,
+            f"{prefix}mean_vox": mean / voxel, f"{prefix}p95_vox": p95 / voxel, f"{prefix}max_vox": mx / voxel}
+
+
+def sdf_error(sdf_est: Volume, tree: AirwayTree, band: float) -> dict:
+    """Error of ``sdf_est`` (metres) against the tree's exact SDF at voxel centres.
+
+    Voxels with ``|true sdf| <= band`` (metres) and an exact true value are used.
+    Returns n, MAE / p95 / max absolute error in metres (``mae_m`` ...) and in
+    voxels (``mae_vox`` ..., voxel = geometric mean of the spacing), the mean
+    signed error (``bias_m``, positive = estimate too far outside) and the
+    fraction of voxels whose sign disagrees (``sign_mismatch``).
+    """
+    voxel = float(np.exp(np.mean(np.log(sdf_est.spacing))))
+    lo, hi = tree.bounds(margin=band + 2 * float(sdf_est.spacing.max()))
+    # only voxels in the (grown) bounding box of the tree can lie within band of the wall
+    w = sdf_est.world_to_index(np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                         for z in (lo[2], hi[2])]))
+    shape = np.array(sdf_est.shape)
+    a = np.clip(np.floor(w.min(axis=0)).astype(int), 0, shape)
+    b = np.clip(np.ceil(w.max(axis=0)).astype(int) + 1, 0, shape)
+    idx = np.mgrid[a[0]:b[0], a[1]:b[1], a[2]:b[2]].reshape(3, -1).T
+    pts = sdf_est.index_to_world(idx)
+    true, exact = tree.sdf(pts, band=band * 1.5 + 1e-9)
+    sel = exact & (np.abs(true) <= band)
+    est = np.asarray(sdf_est.data, dtype=np.float64)[tuple(idx[sel].T)]
+    err = est - true[sel]
+    out = {"band_m": float(band), "voxel_m": voxel}
+    s = _stats(err, voxel, "")
+    out.update({"n": s.get("n", 0)})
+    if s.get("n", 0):
+        out.update(mae_m=s["mean_m"], p95_m=s["p95_m"], max_m=s["max_m"],
+                   mae_vox=s["mean_vox"], p95_vox=s["p95_vox"], max_vox=s["max_vox"],
+                   bias_m=float(err.mean()),
+                   sign_mismatch=float(np.mean((est < 0) != (true[sel] < 0))))
+    return out
+
+
+def sample_surface(mesh: Mesh, spacing: float, rng: np.random.Generator | None = None,
+                   max_points: int = 2_000_000) -> np.ndarray:
+    """Points uniformly distributed on the mesh faces, about one per ``spacing**2`` of area (metres)."""
+    rng = rng or np.random.default_rng(0)
+    v, f = mesh.vertices, mesh.faces
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    total = float(areas.sum())
+    if total <= 0:
+        return np.empty((0, 3))
+    n = int(min(max_points, max(1000, np.ceil(total / spacing ** 2))))
+    face = rng.choice(len(f), size=n, p=areas / total)
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    return (1 - s)[:, None] * a[face] + (s * (1 - r2))[:, None] * b[face] + (s * r2)[:, None] * c[face]
+
+
+def mesh_surface_distance(mesh: Mesh, tree: AirwayTree, spacing: float) -> dict:
+    """Distances between a lumen mesh and the tree's exact surface (metres and voxels).
+
+    ``spacing`` is the voxel size (metres) used to express distances in voxels;
+    the mesh is sampled at about a quarter voxel.  mesh -> true: ``|tree sdf|`` at
+    points uniformly sampled on the faces plus the vertices (exact values only).
+    true -> mesh: distance from ``tree.surface_samples`` to the mesh (open3d
+    ``RaycastingScene.compute_distance``).  Keys: ``m2t_*`` and ``t2m_*``
+    (mean / p95 / max in ``_m`` and ``_vox``), ``hausdorff_m``/``hausdorff_vox``
+    (symmetric), ``mean_m``/``mean_vox``/``p95_m``/``p95_vox`` of mesh -> true.
+    """
+    import open3d as o3d
+
+    pts = np.concatenate([sample_surface(mesh, spacing / 4.0), mesh.vertices])
+    d, exact = tree.sdf(pts, band=8 * spacing)
+    m2t = np.abs(d[exact])
+    truth, _ = tree.surface_samples(spacing / 2.0)
+    scene = o3d.t.geometry.RaycastingScene()
+    # distances in a local frame (float32 precision)
+    origin = mesh.vertices.mean(axis=0)
+    scene.add_triangles(o3d.core.Tensor((mesh.vertices - origin).astype(np.float32)),
+                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    t2m = scene.compute_distance(o3d.core.Tensor((truth - origin).astype(np.float32))).numpy().astype(np.float64)
+    out = {"voxel_m": float(spacing)}
+    out.update(_stats(m2t, spacing, "m2t_"))
+    out.update(_stats(t2m, spacing, "t2m_"))
+    h = max(float(m2t.max()) if m2t.size else 0.0, float(t2m.max()) if t2m.size else 0.0)
+    out.update(hausdorff_m=h, hausdorff_vox=h / spacing,
+               mean_m=out.get("m2t_mean_m", float("nan")), mean_vox=out.get("m2t_mean_vox", float("nan")),
+               p95_m=out.get("m2t_p95_m", float("nan")), p95_vox=out.get("m2t_p95_vox", float("nan")))
+    return out
