@@ -121,10 +121,46 @@ class AirwayTree:
         returned value is clipped to ``band`` (faster for narrow-band use).
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if band is not None and len(points) > 4096 and len(self.branches) > 8:
+            return self._sdf_tiled(points, band, chunk)
+        return self._sdf_all(points, band, chunk)
+
+    def _sdf_all(self, points: np.ndarray, band: float | None, chunk: int) -> tuple[np.ndarray, np.ndarray]:
         out = np.empty(len(points))
         exact = np.empty(len(points), dtype=bool)
         for s in range(0, len(points), chunk):
             out[s:s + chunk], exact[s:s + chunk] = self._sdf_chunk(points[s:s + chunk], band)
+        if band is not None:
+            exact &= np.abs(out) < band  # clipped values are bounds
+        return out, exact
+
+    def _sdf_tiled(self, points: np.ndarray, band: float, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+        """Narrow-band SDF on spatial tiles, each against the capsules that can reach it.
+
+        A capsule matters to a point if it is within ``band`` of it or could
+        cover the foot point of a nearer capsule, so the tile is grown by
+        ``band + max radius`` before selecting capsules; results equal
+        :meth:`_sdf_all` (tested) at a fraction of the cost for large trees.
+        """
+        rmax = max(b.radius for b in self.branches)
+        lo_b = np.array([np.minimum(b.start, b.end) - b.radius for b in self.branches])
+        hi_b = np.array([np.maximum(b.start, b.end) + b.radius for b in self.branches])
+        tile = max(band + rmax, 1e-3)
+        key = np.floor((points - points.min(axis=0)) / tile).astype(np.int64)
+        key = (key[:, 0] * 1_000_003 + key[:, 1]) * 1_000_003 + key[:, 2]
+        order = np.argsort(key, kind="stable")
+        bounds = np.flatnonzero(np.diff(key[order])) + 1
+        out = np.full(len(points), band)
+        exact = np.zeros(len(points), dtype=bool)
+        grow = band + rmax
+        for idx in np.split(order, bounds):
+            p = points[idx]
+            lo, hi = p.min(axis=0) - grow, p.max(axis=0) + grow
+            near = np.all((hi_b >= lo) & (lo_b <= hi), axis=1)
+            if not near.any():
+                continue  # farther than band from every capsule: clipped, not exact
+            sub = AirwayTree([b for b, k in zip(self.branches, near) if k])
+            out[idx], exact[idx] = sub._sdf_all(p, band, chunk)
         return out, exact
 
     def _sdf_chunk(self, p: np.ndarray, band: float | None) -> tuple[np.ndarray, np.ndarray]:

@@ -5,13 +5,15 @@ Each stage is measured twice (the issue's protocol):
 * **isolation**: fed the ground-truth input (segment: the phantom CT; sdf: the
   true mask; mesh: the analytic SDF sampled on the grid);
 * **end to end**: the outputs the pipeline actually produced from the CT.
+
+``checks`` records each bound of the issue (isolation figures) as true/false.
 """
 from __future__ import annotations
 
 import numpy as np
 from omegaconf import DictConfig
 
-from ..anatomy.mesh import MeshParams, extract_surface
+from ..anatomy.mesh import MeshParams, extract_surface, mesh_topology
 from ..anatomy.sdf import SdfParams, compute_sdf
 from ..anatomy.tree import AirwayTree
 from ..config.compose import section
@@ -47,6 +49,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
         pred_mask = read_volume(paths.airway_mask)
         pred_mask = pred_mask.with_data(np.asarray(pred_mask.data) > 0)
         seg = segmentation_metrics(pred_mask, gt_mask, tree)
+        seg.pop("branch_coverage", None)  # per-capsule detail: too long for a metrics file
 
         sdf_params = SdfParams.from_dict(section(cfg, "sdf"))
         sdf_iso = sdf_error(compute_sdf(gt_mask, sdf_params), tree, SDF_BAND_M)
@@ -58,8 +61,21 @@ def run(cfg: DictConfig, patient: str) -> dict:
         mesh_iso = mesh_surface_distance(mesh_iso_res.mesh, tree, voxel)
         mesh_iso["n_faces"] = mesh_iso_res.mesh.n_faces
         mesh_iso["watertight"] = bool(mesh_iso_res.report.get("watertight"))
-        mesh_e2e = mesh_surface_distance(read_obj(paths.mesh), tree, voxel)
+        product_mesh = read_obj(paths.mesh)
+        mesh_e2e = mesh_surface_distance(product_mesh, tree, voxel)
+        mesh_e2e["watertight"] = bool(mesh_topology(product_mesh)["watertight"])
+    checks = {name: bool(ok) for name, ok in (
+        ("segment_dice_ge_0.90", seg["dice"] >= 0.90),
+        ("segment_precision_ge_0.95", seg["precision"] >= 0.95),
+        ("segment_td_ge_0.85", seg["tree_length_detected"] >= 0.85),
+        ("segment_bd_ge_0.80", seg["branches_detected"] >= 0.80),
+        ("sdf_isolation_mae_le_0.25_voxel", sdf_iso["mae_vox"] <= 0.25),
+        ("mesh_isolation_mean_le_0.15_voxel", mesh_iso["mean_vox"] <= 0.15),
+        ("mesh_isolation_p95_le_0.5_voxel", mesh_iso["p95_vox"] <= 0.5),
+        ("mesh_watertight", mesh_iso["watertight"] and mesh_e2e["watertight"]),
+    )}
     metrics = _round({
+        "checks": checks,
         "voxel_size_mm": voxel * 1e3,
         "segment": seg,
         "sdf": {"isolation": sdf_iso, "end_to_end": sdf_e2e},
