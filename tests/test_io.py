@@ -119,3 +119,20 @@ def test_dicom_series_folder_matches_nifti():
     v = read_volume(folder)
     assert v.data.ndim == 3 and v.shape[2] == len([p for p in folder.iterdir() if p.is_file()])
     assert np.all(v.spacing > 0) and v.data.min() < -500
+
+
+def test_ply_roundtrip_and_open3d_reads_it(tmp_path):
+    from room_pipeline.io.ply import read_ply, write_ply
+
+    rng = np.random.default_rng(0)
+    v = {"x": rng.normal(size=5), "y": rng.normal(size=5), "z": rng.normal(size=5),
+         "radius": rng.random(5).astype(np.float32), "branch": np.arange(5, dtype=np.int32)}
+    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 4]])
+    write_ply(tmp_path / "a.ply", v, edges, comments=("units: m",))
+    got, e = read_ply(tmp_path / "a.ply")
+    for k in v:
+        np.testing.assert_array_equal(got[k], v[k])
+    np.testing.assert_array_equal(e, edges)
+    import open3d as o3d
+    pc = o3d.io.read_point_cloud(str(tmp_path / "a.ply"))
+    np.testing.assert_allclose(np.asarray(pc.points), np.stack([v["x"], v["y"], v["z"]], 1))
