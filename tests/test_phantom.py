@@ -13,8 +13,10 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from room_pipeline.anatomy.centreline import from_airway_tree
 from room_pipeline.anatomy.phantom import (Phantom, PhantomParams, grow_tree, kitaoka_angle,
-                                           lung_signed_distance, make_phantom, wall_thickness)
+                                           lung_signed_distance, make_phantom, segment_distances,
+                                           wall_thickness)
 from room_pipeline.anatomy.tree import nearest_branch
 from room_pipeline.conventions import MM
 from room_pipeline.errors import ConfigError
@@ -35,6 +37,14 @@ def small() -> Phantom:
 @pytest.fixture(scope="module")
 def default_tree():
     return grow_tree(PhantomParams(), np.random.default_rng(0))
+
+
+@pytest.fixture(scope="module")
+def default_run() -> tuple[Phantom, float]:
+    """The one default-size phantom (seed 0) and its make_phantom wall time, shared by the tests."""
+    t0 = time.perf_counter()
+    ph = make_phantom(PhantomParams(), seed=0)
+    return ph, time.perf_counter() - t0
 
 
 # ----------------------------------------------------------------------------- config
@@ -68,11 +78,34 @@ def _check_rooted_tree(tree):
         if b.parent == -1:
             continue
         p = tree.branch(b.parent)
-        assert b.generation == p.generation + 1
+        n_kids = len(tree.children(p.id))
+        assert n_kids <= 2
+        # generation counts bifurcations: a lone daughter continues its parent's airway
+        assert b.generation == p.generation + (1 if n_kids == 2 else 0)
         np.testing.assert_array_equal(b.start, p.end)  # children start at the parent's end
         assert b.radius < p.radius
         assert b.length > 0
-        assert len(tree.children(p.id)) <= 2
+
+
+def _non_adjacent_gaps(tree) -> np.ndarray:
+    """Lumen gaps (segment distance - r1 - r2, metres) of every capsule pair that is not
+    parent/child, grandparent/grandchild or siblings (the pairs grow_tree keeps apart)."""
+    br = tree.branches
+    index = {b.id: i for i, b in enumerate(br)}
+    S = np.array([b.start for b in br])
+    E = np.array([b.end for b in br])
+    R = np.array([b.radius for b in br])
+    par = np.array([index.get(b.parent, -1) for b in br])
+    gpar = np.where(par >= 0, par[np.maximum(par, 0)], -1)
+    gpar[par < 0] = -1
+    idx = np.arange(len(br))
+    adjacent = np.eye(len(br), dtype=bool)
+    for rel in (par, gpar):
+        adjacent |= rel[:, None] == idx[None, :]
+        adjacent |= rel[None, :] == idx[:, None]
+    adjacent |= (par[:, None] == par[None, :]) & (par[:, None] >= 0)
+    gap = segment_distances(S[:, None], E[:, None], S[None], E[None]) - R[:, None] - R[None, :]
+    return gap[np.triu(~adjacent, 1)]
 
 
 def test_default_tree_is_valid_and_deep(default_tree):
@@ -139,12 +172,72 @@ def test_random_seeds_stay_in_lungs_and_deep(seed):
     # beyond the main bronchi every branch ends inside a lung; one that starts with its
     # capsule inside a lung keeps its whole capsule inside
     for b in tree.branches:
-        if b.generation < 2:
+        if b.name in ("trachea", "RMB", "LMB"):
             continue
         sd = lung_signed_distance(np.stack([b.start, b.end]), params)
         assert sd[1] <= 1e-9
         if sd[0] <= -b.radius:
             assert sd[1] <= -b.radius + 1e-9
+
+
+def test_segment_distances_closed_form():
+    """Closed-form segment-segment distance vs dense sampling (general, parallel, degenerate cases)."""
+    rng = np.random.default_rng(7)
+    p0, p1, q0, q1 = (rng.normal(size=(100, 3)) for _ in range(4))
+    q1[:20] = q0[:20] + 0.7 * (p1[:20] - p0[:20])   # parallel
+    q1[20:30] = q0[20:30]                            # second segment a point
+    p1[30:40] = p0[30:40]                            # first segment a point
+    q0[40:50], q1[40:50] = p0[40:50], p1[40:50]      # identical
+    got = segment_distances(p0, p1, q0, q1)
+    t = np.linspace(0, 1, 301)
+    a = p0[:, None] + t[None, :, None] * (p1 - p0)[:, None]
+    b = q0[:, None] + t[None, :, None] * (q1 - q0)[:, None]
+    brute = np.linalg.norm(a[:, :, None] - b[:, None, :], axis=-1).min(axis=(1, 2))
+    assert np.all(got <= brute + 1e-12)
+    np.testing.assert_allclose(got, brute, atol=5e-3)
+    # one segment against many broadcasts
+    one = segment_distances(p0[0], p1[0], q0, q1)
+    assert one.shape == (100,) and one[0] == pytest.approx(got[0])
+    np.testing.assert_allclose(one, segment_distances(np.broadcast_to(p0[0], q0.shape),
+                                                      np.broadcast_to(p1[0], q0.shape), q0, q1))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_non_adjacent_branches_keep_clearance(seed):
+    """No two capsules other than parent/child, grandparent/grandchild or siblings come closer
+    than r1 + r2 + min_branch_clearance_mm (collision avoidance, our deviation from Kitaoka)."""
+    params = PhantomParams()
+    tree = grow_tree(params, np.random.default_rng(seed))
+    gaps = _non_adjacent_gaps(tree)
+    assert len(gaps) > 1000
+    assert gaps.min() >= params.min_branch_clearance_mm * MM - 1e-9, f"min gap {gaps.min() / MM:.3f} mm"
+
+
+def test_clearance_is_a_parameter():
+    base = grow_tree(PhantomParams(), np.random.default_rng(0))
+    wide = grow_tree(PhantomParams(min_branch_clearance_mm=4.0), np.random.default_rng(0))
+    assert _non_adjacent_gaps(wide).min() >= 4.0 * MM - 1e-9
+    assert len(wide) < len(base)
+    with pytest.raises(ConfigError):
+        PhantomParams(min_branch_clearance_mm=-1.0)
+
+
+def test_generation_counts_bifurcations(default_tree):
+    """A lone daughter keeps its parent's generation; the centreline graph (which merges such
+    continuation chains) has the same generations, and >= 6 bifurcation generations."""
+    t = default_tree
+    kids = {b.id: t.children(b.id) for b in t.branches}
+    lone = [k[0] for k in kids.values() if len(k) == 1]
+    assert len(lone) > 10
+    for c in lone:
+        assert c.generation == t.branch(c.parent).generation
+    for b in t.branches:
+        if len(kids[b.id]) == 2:
+            assert all(k.generation == b.generation + 1 for k in kids[b.id])
+    graph = from_airway_tree(t, 2 * MM)
+    for gb in graph.branches:
+        assert gb.generation == t.branch(gb.id).generation
+    assert max(gb.generation for gb in graph.branches) == t.max_generation >= 6
 
 
 # ----------------------------------------------------------------------------- volumes
@@ -253,11 +346,9 @@ def test_anisotropic_spacing():
     assert 0.7 < ph.mask.data.sum() * vox / approx < 1.3
 
 
-def test_default_size_run():
+def test_default_size_run(default_run):
     """The one default-size run: figures, time and the trachea inside the volume."""
-    t0 = time.perf_counter()
-    ph = make_phantom(PhantomParams(), seed=0)
-    wall = time.perf_counter() - t0
+    ph, wall = default_run
     n = int(np.prod(ph.ct.shape))
     print(f"default phantom: shape {ph.ct.shape}, {n / 1e6:.1f} M voxels, {len(ph.tree)} branches, "
           f"max generation {ph.tree.max_generation}, {wall:.1f} s")
@@ -292,3 +383,74 @@ def test_radius_matches_schmidt_generations_0_to_5(default_tree):
     for g in range(6):
         ratio = rad[gens == g].mean() / ref_r[ref_g == g].mean()
         assert 0.5 <= ratio <= 2.0, f"generation {g}: phantom/Schmidt radius ratio {ratio:.2f}"
+
+
+# ----------------------------------------------------------------------------- lumen topology
+
+#: Why the marching-cubes Euler test is xfail (measured, seeds 0-9, after collision avoidance):
+#: the capsule union has a sharp, sub-voxel crevice at every carina (the wedge between sibling
+#: lumens thins to zero at the crotch) and at every parent-cap shoulder.  Sampled on a grid, these
+#: crevices are bridged or pinched off depending on the grid offset, which gives spurious handles
+#: and cavities: chi of the level-0 surface is 2 on only a few seeds with either marching-cubes
+#: method (Lewiner: 0 at seed 0; Lorensen: 2 at seed 0 but 0 / 6 / -4 with extra components on
+#: others), and level sets shifted into the lumen do no better.  Before the fix chi was -12
+#: (Lewiner) at seed 0; the loops from intersecting branches are gone (test (a) checks every
+#: non-adjacent pair analytically), the rest are sampling artefacts of the ground-truth shape.
+CREVICE_ARTEFACTS = ("sub-voxel carina crevices of the capsule union give grid-dependent handles in "
+                     "marching cubes (chi 0 at seed 0, Lewiner); see the comment above")
+
+
+def _surface_topology(sdf: np.ndarray) -> tuple[int, int]:
+    """(Euler characteristic V - E + F, connected components) of the zero level set of ``sdf``.
+
+    skimage marching cubes (default Lewiner method) at level 0 on the volume
+    cropped to the lumen (plus 2 voxels) and padded with positive values, so
+    the surface is closed; E counts unique undirected edges.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from skimage.measure import marching_cubes
+
+    inside = np.argwhere(sdf < 0)
+    lo = np.maximum(inside.min(axis=0) - 2, 0)
+    hi = inside.max(axis=0) + 3
+    vol = np.pad(sdf[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], 1, constant_values=max(float(sdf.max()), 1e-3))
+    verts, faces, _, _ = marching_cubes(vol, level=0.0)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    edges, count = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(count == 2)  # closed 2-manifold: every edge in exactly two triangles
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(verts), len(verts)))
+    return len(verts) - len(edges) + len(faces), connected_components(graph, directed=False)[0]
+
+
+def _mask_components(mask: np.ndarray) -> int:
+    from scipy import ndimage
+    return ndimage.label(mask > 0, structure=np.ones((3, 3, 3)))[1]
+
+
+@pytest.fixture(scope="module")
+def coarse_phantoms() -> dict[int, Phantom]:
+    """Seeds 1 and 2 at 1.0 mm spacing (cheaper than the default 0.7 mm)."""
+    return {seed: make_phantom(PhantomParams(spacing_mm=1.0), seed=seed) for seed in (1, 2)}
+
+
+def test_mask_is_one_26_connected_component(default_run, coarse_phantoms):
+    assert _mask_components(default_run[0].mask.data) == 1
+    for ph in coarse_phantoms.values():
+        assert _mask_components(ph.mask.data) == 1
+
+
+@pytest.mark.xfail(reason=CREVICE_ARTEFACTS, strict=False)
+def test_default_lumen_surface_is_a_sphere(default_run):
+    """Marching cubes of the seed-0 ground-truth SDF: one closed surface with chi = 2."""
+    chi, n_surfaces = _surface_topology(default_run[0].sdf.data)
+    print(f"seed 0, 0.7 mm: chi {chi}, {n_surfaces} surface(s)")
+    assert (n_surfaces, chi) == (1, 2)
+
+
+@pytest.mark.xfail(reason=CREVICE_ARTEFACTS, strict=False)
+@pytest.mark.parametrize("seed", [1, 2])
+def test_coarse_lumen_surface_is_a_sphere(coarse_phantoms, seed):
+    chi, n_surfaces = _surface_topology(coarse_phantoms[seed].sdf.data)
+    print(f"seed {seed}, 1.0 mm: chi {chi}, {n_surfaces} surface(s)")
+    assert (n_surfaces, chi) == (1, 2)

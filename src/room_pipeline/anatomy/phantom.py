@@ -28,7 +28,31 @@ Tree model
       extent along the branch) and inside the lung (the capsule stays inside
       the lung shape);
     * a daughter thinner than ``min_diameter_mm`` or a region with fewer than
-      ``min_region_points`` points ends the recursion.
+      ``min_region_points`` points ends the recursion;
+    * generation counts bifurcations (trachea = 0): a parent left with a single
+      daughter (the other one too thin, without room, or dropped for a
+      collision, below) does not bifurcate; that lone daughter continues the
+      same airway past a kink and keeps its parent's generation (as
+      :func:`~room_pipeline.anatomy.centreline.from_airway_tree`, which merges
+      such chains into one graph branch); daughters of a bifurcation get
+      generation + 1.
+
+    Deviation from Kitaoka et al.: collision avoidance.  Kitaoka's rules keep
+    branches inside their own (disjoint) regions but do not stop a branch from
+    passing close to, or through, a branch of a neighbouring region, which
+    would give the lumen loops (it would no longer be a tree) and merge
+    separate airways once partial volume and the PSF blur the CT.  Here every
+    new daughter is checked against every existing capsule except its parent,
+    its grandparent (ancestors within one generation, which it touches at the
+    junction anyway) and its sibling: the closed-form segment-to-segment
+    distance must be at least ``r_new + r_other + min_branch_clearance_mm``.
+    A daughter that violates this at full length is shortened (bisection on
+    its length) down to at most ``max(diameter, min_branch_length_mm)``; if
+    even that violates it (or, for a hilar branch, the shortened end is no
+    longer inside a lung) the daughter is not grown and its sub-region is left
+    unsupplied.  A shortened daughter keeps its region and is split further;
+    its own daughters are checked in turn when they are created, so the rule
+    holds for every pair of non-adjacent capsules of the final tree.
 
 CT model
     Layers mixed with partial-volume coverage ``clip(0.5 - s / h, 0, 1)`` from
@@ -92,6 +116,8 @@ class PhantomParams:
     length_to_diameter: float = 3.0
     min_diameter_mm: float = 2.0
     max_generation: int = 20
+    min_branch_clearance_mm: float = 1.5   # lumen gap kept between non-adjacent branches
+    min_branch_length_mm: float = 2.0      # a branch shortened for clearance stays >= max(this, diameter)
     min_region_points: int = 8
     plane_rotation_jitter_deg: float = 20.0
     lung_points: int = 20000               # both lungs together
@@ -152,7 +178,8 @@ class PhantomParams:
                 raise ConfigError(f"phantom.{name} must be > 0, got {getattr(self, name)}")
         nonneg = ("margin_mm", "crop_top_mm", "chest_wall_mm", "fat_thickness_mm", "mediastinum_half_width_mm",
                   "wall_thickness_ratio", "wall_thickness_offset_mm", "texture_sigma_hu",
-                  "psf_sigma_voxels", "noise_sigma_hu", "plane_rotation_jitter_deg", "max_generation")
+                  "psf_sigma_voxels", "noise_sigma_hu", "plane_rotation_jitter_deg", "max_generation",
+                  "min_branch_clearance_mm", "min_branch_length_mm")
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ConfigError(f"phantom.{name} must be >= 0, got {getattr(self, name)}")
@@ -290,12 +317,110 @@ def _clip_length(start, u, length, radius, pts, params) -> float:
     return float(s[out[0] - 1]) if len(out) else length
 
 
+def segment_distances(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """Closed-form distance between segment ``p0 p1`` and each segment ``q0[i] q1[i]`` (metres).
+
+    ``p0``, ``p1`` broadcast against ``q0``, ``q1`` (..., 3).  The closest-point
+    parameters of the infinite lines are clamped to the segments in the
+    standard order (Ericson, Real-Time Collision Detection, 5.1.9), which is
+    exact for segments, including parallel and zero-length ones.
+    """
+    d1 = np.asarray(p1, dtype=np.float64) - p0
+    d2 = np.asarray(q1, dtype=np.float64) - q0
+    r = np.asarray(p0, dtype=np.float64) - q0
+    a = np.einsum("...i,...i->...", d1, d1)
+    e = np.einsum("...i,...i->...", d2, d2)
+    b = np.einsum("...i,...i->...", d1, d2)
+    c = np.einsum("...i,...i->...", d1, r)
+    f = np.einsum("...i,...i->...", d2, r)
+    a, e, b, c, f = np.broadcast_arrays(a, e, b, c, f)
+    tiny = 1e-30
+    a_ = np.where(a > tiny, a, 1.0)
+    e_ = np.where(e > tiny, e, 1.0)
+    den = a * e - b * b
+    # s on the first segment: line-line optimum (0 for parallel or degenerate segments) ...
+    s = np.where(den > 1e-12 * a * e, np.clip((b * f - c * e) / np.where(den > 0, den, 1.0), 0.0, 1.0), 0.0)
+    s = np.where(e > tiny, s, np.clip(-c / a_, 0.0, 1.0))  # second segment a point: project it
+    s = np.where(a > tiny, s, 0.0)
+    # ... then t on the second for that s; if t leaves [0, 1], clamp it and recompute s
+    t = np.where(e > tiny, (b * s + f) / e_, 0.0)
+    s = np.where(t < 0.0, np.clip(-c / a_, 0.0, 1.0), np.where(t > 1.0, np.clip((b - c) / a_, 0.0, 1.0), s))
+    s = np.where(a > tiny, s, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    v = r + s[..., None] * d1 - t[..., None] * d2
+    return np.sqrt(np.einsum("...i,...i->...", v, v))
+
+
+class _Clearance:
+    """Capsules grown so far, for the collision check of new branches (see the module docstring)."""
+
+    def __init__(self, clearance: float) -> None:
+        self.clearance = clearance
+        self.start = np.empty((0, 3))
+        self.end = np.empty((0, 3))
+        self.radius = np.empty(0)
+        self.n = 0
+
+    def add(self, b: Branch) -> None:
+        if self.n == len(self.radius):  # grow the buffers geometrically
+            cap = max(64, 2 * self.n)
+            for name, shape in (("start", (cap, 3)), ("end", (cap, 3)), ("radius", (cap,))):
+                buf = np.empty(shape)
+                buf[:self.n] = getattr(self, name)[:self.n]
+                setattr(self, name, buf)
+        self.start[self.n], self.end[self.n], self.radius[self.n] = b.start, b.end, b.radius
+        self.n += 1
+
+    def fit(self, start: np.ndarray, u: np.ndarray, length: float, radius: float, min_length: float,
+            exclude: list[int]) -> float:
+        """Longest length <= ``length`` keeping the clearance to every capsule not in ``exclude``.
+
+        Returns ``length`` if the full branch is clear, else the largest clear
+        length found by bisection in ``[min_length, length]``, or 0 if even
+        ``min_length`` (or ``length`` when it is shorter) is not clear.
+        Capsule ids are their insertion order (= branch ids).
+        """
+        keep = np.ones(self.n, dtype=bool)
+        keep[[i for i in exclude if 0 <= i < self.n]] = False
+        q0, q1 = self.start[:self.n][keep], self.end[:self.n][keep]
+        need = radius + self.radius[:self.n][keep] + self.clearance
+        # cheap prefilter: bounding spheres of the full-length branch and each capsule
+        mid = start + 0.5 * length * u
+        reach = 0.5 * length + 0.5 * np.linalg.norm(q1 - q0, axis=1) + need
+        near = np.linalg.norm(0.5 * (q0 + q1) - mid, axis=1) < reach
+        q0, q1, need = q0[near], q1[near], need[near]
+        if not len(need):
+            return length
+
+        def clear(L: float) -> bool:
+            return bool(np.all(segment_distances(start, start + L * u, q0, q1) >= need))
+
+        if clear(length):
+            return length
+        lo = min(min_length, length)
+        if lo >= length or not clear(lo):
+            return 0.0
+        hi = length
+        for _ in range(20):  # distance to a segment is non-increasing in the branch length
+            if hi - lo < 1e-5 * MM:
+                break
+            mid_l = 0.5 * (lo + hi)
+            if clear(mid_l):
+                lo = mid_l
+            else:
+                hi = mid_l
+        return lo
+
+
 def grow_tree(params: PhantomParams, rng: np.random.Generator) -> AirwayTree:
     """Grow the bronchial tree (Kitaoka et al. 1999, simplified; see the module docstring).
 
     The carina is at the world origin, the trachea runs along -z from
     ``(0, 0, trachea_length)``; +x is the patient's right (RAS+).  Branch ids
     are assigned breadth-first; names: 'trachea', 'RMB', 'LMB'.  Metres.
+    Generations count bifurcations (a lone daughter keeps its parent's) and
+    non-adjacent capsules keep ``min_branch_clearance_mm`` apart (see the
+    module docstring).
     """
     n = params.flow_exponent
     shapes = _lung_shapes(params)
@@ -308,6 +433,8 @@ def grow_tree(params: PhantomParams, rng: np.random.Generator) -> AirwayTree:
     carina = np.zeros(3)
     trachea = Branch(0, -1, 0, carina + [0.0, 0.0, params.trachea_length_mm * MM], carina, d0 / 2, "trachea")
     branches = [trachea]
+    grown = _Clearance(params.min_branch_clearance_mm * MM)
+    grown.add(trachea)
     queue: deque = deque()
     coronal_normal = np.array([0.0, 1.0, 0.0])  # the carina's branching plane is coronal
     r_right = len(clouds[0]) / (len(clouds[0]) + len(clouds[1]))
@@ -318,10 +445,12 @@ def grow_tree(params: PhantomParams, rng: np.random.Generator) -> AirwayTree:
         u = np.array([side * np.sin(a), 0.0, -np.cos(a)])
         b = Branch(len(branches), 0, 1, carina, carina + length * MM * u, 0.5 * d0 * r ** (1.0 / n), name)
         branches.append(b)
+        grown.add(b)
         queue.append((b, cloud, coronal_normal))
 
     jitter = np.deg2rad(params.plane_rotation_jitter_deg)
     dmin = params.min_diameter_mm * MM
+    lmin = params.min_branch_length_mm * MM
     while queue:
         parent, pts, plane_normal = queue.popleft()
         if len(pts) < params.min_region_points or parent.generation >= params.max_generation:
@@ -335,6 +464,7 @@ def grow_tree(params: PhantomParams, rng: np.random.Generator) -> AirwayTree:
         side = (pts - bp) @ m > 0
         if side.all() or not side.any():  # the region lies on one side of the axis: no bifurcation
             continue
+        kids: list[Branch] = []
         for sub in (pts[side], pts[~side]):
             r = len(sub) / len(pts)
             d = 2 * parent.radius * r ** (1.0 / n)
@@ -349,9 +479,21 @@ def grow_tree(params: PhantomParams, rng: np.random.Generator) -> AirwayTree:
             length = _clip_length(bp, u, params.length_to_diameter * d, d / 2, sub, params)
             if length < d / 2:  # no room for a branch in this sub-region
                 continue
-            child = Branch(len(branches), parent.id, parent.generation + 1, bp.copy(), bp + length * u, d / 2)
+            # collision avoidance (our deviation from Kitaoka): not counting the parent, the
+            # grandparent and the sibling, shorten the branch or drop it
+            exclude = [parent.id, parent.parent] + [k.id for k in kids]
+            fitted = grown.fit(bp, u, length, d / 2, max(d, lmin), exclude)
+            if fitted <= 0.0:
+                continue
+            if fitted < length and lung_signed_distance((bp + fitted * u)[None], params)[0] > 0:
+                continue  # a hilar branch shortened back out of the lung
+            child = Branch(len(branches), parent.id, parent.generation + 1, bp.copy(), bp + fitted * u, d / 2)
             branches.append(child)
+            grown.add(child)
+            kids.append(child)
             queue.append((child, sub, nb))
+        if len(kids) == 1:  # no bifurcation: the lone daughter continues the parent's airway
+            kids[0].generation = parent.generation
     return AirwayTree(branches)
 
 
