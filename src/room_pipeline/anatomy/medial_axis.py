@@ -1,0 +1,653 @@
+"""Lumen SDF -> centreline navigation graph (medial axis of the ROOM method).
+
+Method (Esposito et al., ROOM; written here from the description):
+
+1. **surface samples**: marching-cubes vertices of the SDF zero level (cells
+   next to the lumen wall only), optionally a seeded random subset of
+   ``n_surface_samples`` of them;
+2. **grassfire tracing**: every sample moves inward along the SDF gradient,
+   ``dx/dt = -n``, ``n = grad sdf / |grad sdf|`` (SDF and its central-difference
+   gradient interpolated trilinearly, step ``step_voxels`` of the smallest voxel
+   size).  Along such a path the SDF falls at unit rate until the path crosses
+   the medial surface, where the gradient direction flips; a **medial point** is
+   declared when the SDF stops falling (directional derivative above
+   ``-min_descent``) or consecutive gradient directions turn by more than
+   ``flip_angle_deg``.  Its position is the lowest-SDF point of the last step,
+   its radius ``-sdf`` there (as the 1-Lipschitz upper envelope of the voxel
+   values, ``min_v (-sdf(v) + |x - v|)``, which trilinear interpolation would
+   underestimate on the ridge);
+3. **graph**: medial points are averaged on a grid of ``cluster_voxels``; cluster
+   points closer than ``max(link_voxels, link_radius_factor * r)`` are linked
+   (edge weight = length x a centring penalty that favours the locally widest
+   points); the root is the most superior point of the largest-radius part (the
+   trachea entry); a shortest-path tree from the root is grown and branches are
+   extracted TEASAR-like (farthest remaining point -> path back to the
+   skeleton -> invalidate the points within ``invalidation_scale * r +
+   invalidation_voxels`` of it);
+4. **clean-up**: terminal twigs shorter than ``prune_factor`` x the radius at
+   their junction are pruned (iterated; a node left with one child is merged
+   away), internal branches shorter than ``merge_factor`` x radius are collapsed
+   (a trifurcation stays one node), only the part connected to the root is kept
+   (medial clusters joined to it by a straight in-lumen segment are bridged
+   first; what stays apart is dropped, counted and logged) and contacts between
+   branches far from any junction that the tree does not connect are counted as
+   broken loops (logged);
+5. polylines are smoothed lightly (Gaussian along the arc, a point that would
+   leave the lumen keeps its unsmoothed position), resampled every
+   ``resample_step_mm`` and given the radius ``-sdf`` (envelope as above) at every point.
+
+Output: :class:`~room_pipeline.anatomy.centreline.CentrelineGraph` (metres,
+RAS+, proximal -> distal, generation = bifurcations above the branch).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Any, Mapping
+
+import numpy as np
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from ..errors import ConfigError, InputError
+from ..io.volume import Volume
+from .centreline import CentrelineGraph, GraphBranch
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class MedialAxisParams:
+    """Parameters of :func:`extract_medial_axis`; field names == keys of ``conf/medial_axis/default.yaml``.
+
+    Lengths in voxels are in units of the geometric-mean voxel size (the
+    tracing step: of the smallest voxel size).
+    """
+
+    n_surface_samples: int = 150000     # 0 = every marching-cubes vertex
+    seed: int = 0                       # subsampling of the surface vertices
+    step_voxels: float = 0.25           # grassfire step
+    max_steps: int = 0                  # 0 = automatic (1.5 x deepest point / step)
+    min_descent: float = 0.3            # medial when d(sdf)/ds along the path > -min_descent
+    flip_angle_deg: float = 90.0        # ... or consecutive gradient directions turn by more than this
+    min_radius_voxels: float = 0.2      # medial points shallower than this are dropped
+    cluster_voxels: float = 0.5         # grid on which medial points are averaged
+    link_voxels: float = 2.0            # cluster points closer than this are neighbours ...
+    link_radius_factor: float = 1.0     # ... or closer than this x their larger radius, along a segment inside the lumen
+    centring_penalty: float = 4.0       # edge weight = length x (1 + penalty x (1 - r / local max r))
+    root_radius_fraction: float = 0.7   # the trachea = connected points with r >= this x max r
+    invalidation_scale: float = 1.2     # TEASAR: points within scale x r + voxels of a path are taken
+    invalidation_voxels: float = 1.0
+    prune_factor: float = 1.5           # terminal branch shorter than this x junction radius is pruned
+    merge_factor: float = 0.5           # internal branch shorter than this x its radius is collapsed
+    smooth_voxels: float = 1.0          # Gaussian sigma along the polyline (0 = none)
+    resample_step_mm: float = 0.5       # output point spacing along every branch
+
+    def __post_init__(self) -> None:
+        pos = ("step_voxels", "cluster_voxels", "link_voxels", "resample_step_mm")
+        for name in pos:
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(f"medial_axis.{name} must be > 0, got {getattr(self, name)}")
+        nonneg = ("n_surface_samples", "max_steps", "min_radius_voxels", "link_radius_factor",
+                  "centring_penalty", "invalidation_scale", "invalidation_voxels", "prune_factor",
+                  "merge_factor", "smooth_voxels")
+        for name in nonneg:
+            if float(getattr(self, name)) < 0:
+                raise ConfigError(f"medial_axis.{name} must be >= 0, got {getattr(self, name)}")
+        if not (0.0 < float(self.min_descent) < 1.0):
+            raise ConfigError(f"medial_axis.min_descent must be in (0, 1), got {self.min_descent}")
+        if not (0.0 < float(self.flip_angle_deg) <= 180.0):
+            raise ConfigError(f"medial_axis.flip_angle_deg must be in (0, 180], got {self.flip_angle_deg}")
+        if not (0.0 < float(self.root_radius_fraction) <= 1.0):
+            raise ConfigError(f"medial_axis.root_radius_fraction must be in (0, 1], got {self.root_radius_fraction}")
+        if self.step_voxels > 1.0:
+            raise ConfigError(f"medial_axis.step_voxels must be <= 1 (a fraction of a voxel), got {self.step_voxels}")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> "MedialAxisParams":
+        """Build from a config mapping; unknown keys raise :class:`ConfigError` naming the key."""
+        d = dict(d or {})
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - set(fields))
+        if unknown:
+            raise ConfigError(f"unknown key 'medial_axis.{unknown[0]}' (allowed: {', '.join(fields)})")
+        kw = {}
+        for name, value in d.items():
+            default = fields[name].default
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"medial_axis.{name}: expected {type(default).__name__}, got {value!r}")
+            if isinstance(default, int):
+                if isinstance(value, float) and not value.is_integer():
+                    raise ConfigError(f"medial_axis.{name}: expected int, got {value!r}")
+                kw[name] = int(value)
+            else:
+                kw[name] = float(value)
+        return cls(**kw)
+
+
+@dataclasses.dataclass
+class MedialAxisResult:
+    """``graph``; raw ``medial_points`` (N, 3) metres with ``medial_radius`` (N,); ``report`` (JSON-able)."""
+
+    graph: CentrelineGraph
+    medial_points: np.ndarray
+    medial_radius: np.ndarray
+    report: dict
+
+
+# --------------------------------------------------------------------------- helpers
+def crop_to_interior(vol: Volume, margin_voxels: int = 4, inside=None) -> Volume:
+    """The bounding box of the lumen (``inside(data)``, default ``data > 0``) plus a margin, affine adjusted.
+
+    For large masks (tens of millions of voxels) crop before :func:`compute_sdf`.
+    """
+    m = (vol.data > 0) if inside is None else inside(vol.data)
+    if not m.any():
+        raise InputError("volume has no lumen voxel to crop to")
+    lo = np.array([np.flatnonzero(m.any(axis=tuple(b for b in range(3) if b != a)))[0] for a in range(3)])
+    hi = np.array([np.flatnonzero(m.any(axis=tuple(b for b in range(3) if b != a)))[-1] for a in range(3)])
+    lo = np.maximum(lo - margin_voxels, 0)
+    hi = np.minimum(hi + margin_voxels + 1, vol.shape)
+    aff = vol.affine.copy()
+    aff[:3, 3] = vol.index_to_world(lo[None].astype(float))[0]
+    return Volume(np.ascontiguousarray(vol.data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]), aff)
+
+
+class _Field:
+    """SDF + world gradient on a grid, trilinear lookup of all four channels at once."""
+
+    def __init__(self, sdf: np.ndarray, affine: np.ndarray):
+        A = affine[:3, :3]
+        self.Ainv = np.linalg.inv(A)
+        self.A = A
+        self.t = affine[:3, 3]
+        g = np.gradient(sdf.astype(np.float32))
+        gw = np.einsum("ji,jxyz->xyzi", self.Ainv.astype(np.float32), np.stack(g))  # Ainv^T g
+        self.vals = np.concatenate([sdf.astype(np.float32)[..., None], gw], axis=3).reshape(-1, 4)
+        self.shape = np.array(sdf.shape)
+        self.strides = np.array([sdf.shape[1] * sdf.shape[2], sdf.shape[2], 1], dtype=np.int64)
+        self.offsets = np.array([(a * self.strides[0] + b * self.strides[1] + c * self.strides[2])
+                                 for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.int64)
+        self.corner = np.array([(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.float32)
+
+    def sample(self, ijk: np.ndarray) -> np.ndarray:
+        """(N, 3) continuous indices -> (N, 4): sdf, world gradient."""
+        p = np.clip(ijk, 0, self.shape - 1.000001)
+        i0 = np.minimum(np.floor(p).astype(np.int64), self.shape - 2)
+        f = (p - i0).astype(np.float32)
+        base = i0 @ self.strides
+        w = np.prod(np.where(self.corner[None] > 0, f[:, None, :], 1 - f[:, None, :]), axis=2)  # (N, 8)
+        v = self.vals[base[:, None] + self.offsets[None]]  # (N, 8, 4)
+        return np.einsum("nk,nkc->nc", w, v)
+
+    def radius(self, ijk: np.ndarray) -> np.ndarray:
+        """Lumen radius at (N, 3) indices: ``min_v (-sdf(v) + |x - v|)`` over the 8 surrounding voxels.
+
+        The SDF is 1-Lipschitz, so every term bounds the true ``-sdf(x)`` from
+        above and the minimum is exact on the medial ridge, where trilinear
+        interpolation of the V-shaped profile underestimates the depth.
+        """
+        p = np.clip(ijk, 0, self.shape - 1.000001)
+        i0 = np.minimum(np.floor(p).astype(np.int64), self.shape - 2)
+        f = p - i0
+        base = i0 @ self.strides
+        s = self.vals[base[:, None] + self.offsets[None], 0].astype(np.float64)  # (N, 8)
+        off = (f[:, None, :] - self.corner[None].astype(np.float64)) @ self.A.T  # (N, 8, 3) world
+        return np.min(-s + np.linalg.norm(off, axis=2), axis=1)
+
+    def to_world(self, ijk: np.ndarray) -> np.ndarray:
+        return ijk @ self.A.T + self.t
+
+    def to_index(self, xyz: np.ndarray) -> np.ndarray:
+        return (xyz - self.t) @ self.Ainv.T
+
+
+def _surface_samples(sdf: np.ndarray, n: int, seed: int) -> np.ndarray:
+    from skimage.measure import marching_cubes
+
+    inside = sdf < 0
+    region = ndimage.binary_dilation(inside) & ~ndimage.binary_erosion(inside)
+    verts, _, _, _ = marching_cubes(sdf.astype(np.float32), level=0.0, mask=region, allow_degenerate=False)
+    if n and len(verts) > n:
+        rng = np.random.default_rng(seed)
+        verts = verts[np.sort(rng.choice(len(verts), n, replace=False))]
+    return verts
+
+
+def _trace(field: _Field, start: np.ndarray, h: float, max_steps: int, params: MedialAxisParams
+           ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Grassfire paths from ``start`` (index coords); returns medial (index coords, sdf) and #unfinished."""
+    cos_flip = np.cos(np.deg2rad(params.flip_angle_deg))
+    x = start.astype(np.float64)
+    v = field.sample(x)
+    alive = np.arange(len(x))
+    out_p, out_s = [], []
+    for _ in range(max_steps):
+        if len(alive) == 0:
+            break
+        g = v[:, 1:]
+        gn = np.linalg.norm(g, axis=1)
+        ok = gn > 1e-6
+        n = g / np.maximum(gn, 1e-12)[:, None]
+        xn = x - h * (n @ field.Ainv.T)
+        vn = field.sample(xn)
+        desc = (vn[:, 0] - v[:, 0]) / h
+        gnn = vn[:, 1:] / np.maximum(np.linalg.norm(vn[:, 1:], axis=1), 1e-12)[:, None]
+        turn = np.einsum("ij,ij->i", n, gnn)
+        hit = ok & ((desc > -params.min_descent) | (turn < cos_flip))
+        stuck = ~ok
+        if hit.any():
+            # lowest SDF of: last position, mid-step, new position
+            xm = 0.5 * (x[hit] + xn[hit])
+            sm = field.sample(xm)[:, 0]
+            cand_x = np.stack([x[hit], xm, xn[hit]], axis=1)
+            cand_s = np.stack([v[hit, 0], sm, vn[hit, 0]], axis=1)
+            k = np.argmin(cand_s, axis=1)
+            r = np.arange(len(k))
+            out_p.append(cand_x[r, k])
+            out_s.append(cand_s[r, k])
+        keep = ~hit & ~stuck
+        x, v, alive = xn[keep], vn[keep], alive[keep]
+    if not out_p:
+        return np.zeros((0, 3)), np.zeros(0), len(alive)
+    return np.concatenate(out_p), np.concatenate(out_s), len(alive)
+
+
+def _cluster(p: np.ndarray, r: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    key = np.floor(p / cell).astype(np.int64)
+    key -= key.min(axis=0)
+    dims = key.max(axis=0) + 1
+    lin = np.ravel_multi_index(key.T, dims)
+    uniq, inv = np.unique(lin, return_inverse=True)
+    cnt = np.bincount(inv).astype(np.float64)
+    cp = np.stack([np.bincount(inv, weights=p[:, a]) for a in range(3)], axis=1) / cnt[:, None]
+    cr = np.bincount(inv, weights=r) / cnt
+    return cp, cr
+
+
+def _polyline_length(p: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
+
+
+def _resample(p: np.ndarray, step: float) -> np.ndarray:
+    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    L = s[-1]
+    if L <= 0:
+        return np.vstack([p[0], p[-1]])
+    m = max(1, int(np.ceil(L / step - 1e-9)))
+    t = np.linspace(0.0, L, m + 1)
+    return np.stack([np.interp(t, s, p[:, a]) for a in range(3)], axis=1)
+
+
+# --------------------------------------------------------------------------- API
+def extract_medial_axis(sdf: Volume, params: MedialAxisParams | None = None) -> MedialAxisResult:
+    """Centreline graph of the lumen described by ``sdf`` (metres, negative inside).
+
+    Raises:
+        InputError: the SDF has no interior (no negative voxel) or no medial point was found.
+    """
+    params = params or MedialAxisParams()
+    t_all = time.perf_counter()
+    timings: dict[str, float] = {}
+    data = np.asarray(sdf.data)
+    if not np.isfinite(data).all():
+        raise InputError("SDF holds non-finite values")
+    if not (data < 0).any():
+        raise InputError("SDF has no interior (no negative value): no lumen to extract a medial axis from")
+
+    t0 = time.perf_counter()
+    crop = crop_to_interior(sdf, margin_voxels=3, inside=lambda a: a < 0)
+    spacing = crop.spacing
+    voxel = float(np.exp(np.mean(np.log(spacing))))
+    h = params.step_voxels * float(spacing.min())
+    field = _Field(crop.data, crop.affine)
+    timings["prepare_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    start = _surface_samples(crop.data, params.n_surface_samples, params.seed)
+    timings["surface_s"] = time.perf_counter() - t0
+    if len(start) == 0:
+        raise InputError("SDF zero level has no surface inside the volume")
+
+    t0 = time.perf_counter()
+    depth = -float(crop.data.min())
+    max_steps = params.max_steps or int(np.ceil(1.5 * depth / h)) + 8
+    mp_idx, mp_sdf, unfinished = _trace(field, start, h, max_steps, params)
+    keep = -mp_sdf >= params.min_radius_voxels * voxel
+    mp_idx = mp_idx[keep]
+    medial_points = field.to_world(mp_idx)
+    medial_radius = np.maximum(field.radius(mp_idx), 0.0)
+    timings["trace_s"] = time.perf_counter() - t0
+    if len(medial_points) < 2:
+        raise InputError("no medial point found inside the lumen (is the SDF negative inside?)")
+
+    t0 = time.perf_counter()
+    graph, rep = _build_graph(medial_points, medial_radius, field, voxel, params)
+    timings["graph_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_all
+    report = {"n_surface_samples": int(len(start)), "n_unfinished_paths": int(unfinished),
+              "n_medial_points": int(len(medial_points)), **rep,
+              "n_branches": len(graph.branches), "voxel_size_m": voxel, "step_m": h,
+              "timings": {k: round(v, 4) for k, v in timings.items()}}
+    return MedialAxisResult(graph, medial_points, medial_radius, report)
+
+
+def centreline_from_points(points: np.ndarray, radius: np.ndarray, sdf: Volume,
+                           params: MedialAxisParams | None = None) -> tuple[CentrelineGraph, dict]:
+    """Steps 3-5 alone: a centreline graph from any interior point cloud (metres) with radii.
+
+    Used by the benchmark to turn baseline skeletons (scikit-image, kimimaro)
+    into graphs with the same builder; ``sdf`` gives the lumen for link tests,
+    smoothing and output radii.
+    """
+    params = params or MedialAxisParams()
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) < 2:
+        raise InputError("need at least 2 interior points to build a centreline graph")
+    crop = crop_to_interior(sdf, margin_voxels=3, inside=lambda a: a < 0)
+    voxel = float(np.exp(np.mean(np.log(crop.spacing))))
+    return _build_graph(points, np.asarray(radius, dtype=np.float64), _Field(crop.data, crop.affine), voxel, params)
+
+
+def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, params: MedialAxisParams
+                 ) -> tuple[CentrelineGraph, dict]:
+    rep: dict[str, Any] = {}
+    pts, rad = _cluster(mp, mr, params.cluster_voxels * voxel)
+    rep["n_cluster_points"] = int(len(pts))
+    kd = cKDTree(pts)
+    link_min = params.link_voxels * voxel
+    reach = np.maximum(link_min, params.link_radius_factor * rad)
+    pairs = kd.query_pairs(r=float(reach.max()), output_type="ndarray")
+    if len(pairs):
+        d = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1)
+        allowed = np.maximum(link_min, params.link_radius_factor * np.maximum(rad[pairs[:, 0]], rad[pairs[:, 1]]))
+        sel = d <= allowed
+        pairs, d = pairs[sel], d[sel]
+        # links longer than link_voxels must run inside the lumen (never across a wall)
+        longp = np.flatnonzero(d > link_min)
+        if len(longp):
+            t = np.linspace(0.0, 1.0, 7)[1:-1]
+            a, b = pts[pairs[longp, 0]], pts[pairs[longp, 1]]
+            ok = np.ones(len(longp), dtype=bool)
+            for tk in t:
+                ok &= field.sample(field.to_index(a + tk * (b - a)))[:, 0] < 0
+            drop = np.zeros(len(pairs), dtype=bool)
+            drop[longp[~ok]] = True
+            pairs, d = pairs[~drop], d[~drop]
+    else:
+        d = np.zeros(0)
+    rep["n_links"] = int(len(pairs))
+    M = len(pts)
+    # local max radius over neighbours: the centring reference
+    rloc = rad.copy()
+    if len(pairs):
+        np.maximum.at(rloc, pairs[:, 0], rad[pairs[:, 1]])
+        np.maximum.at(rloc, pairs[:, 1], rad[pairs[:, 0]])
+    rbar = 0.5 * (rad[pairs[:, 0]] + rad[pairs[:, 1]]) if len(pairs) else np.zeros(0)
+    rl = np.maximum(rloc[pairs[:, 0]], rloc[pairs[:, 1]]) if len(pairs) else np.zeros(0)
+    w = d * (1.0 + params.centring_penalty * np.clip(1.0 - rbar / np.maximum(rl, 1e-12), 0, 1)) + 1e-12
+    G = sparse.coo_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(M, M)).tocsr() if len(pairs) else sparse.csr_matrix((M, M))
+    G = G + G.T
+    G, rep["n_bridges"] = _bridge_components(G, pts, field, voxel)
+    ncomp, comp = csgraph.connected_components(G, directed=False)
+
+    # root: most superior point of the largest-radius part
+    big = rad >= params.root_radius_fraction * rad.max()
+    imax = int(np.argmax(rad))
+    sub = G[big][:, big]
+    _, subcomp = csgraph.connected_components(sub, directed=False)
+    bidx = np.flatnonzero(big)
+    trachea = bidx[subcomp == subcomp[np.searchsorted(bidx, imax)]]
+    root = int(trachea[np.argmax(pts[trachea, 2])])
+
+    in_root = comp == comp[root]
+    dropped_comps = int(ncomp - 1)
+    dropped_pts = int((~in_root).sum())
+    rep["dropped_components"] = dropped_comps
+    rep["dropped_cluster_points"] = dropped_pts
+    if dropped_comps:
+        sizes = np.bincount(comp)
+        log.warning("medial axis: dropped %d component(s) not connected to the trachea (%d medial cluster points, "
+                    "largest %d)", dropped_comps, dropped_pts, int(np.sort(sizes)[-2]) if ncomp > 1 else 0)
+
+    dist, pred = csgraph.dijkstra(G, directed=False, indices=root, return_predecessors=True)
+    valid = np.isfinite(dist)
+    in_skel = np.zeros(M, dtype=bool)
+    in_skel[root] = True
+    valid[root] = False
+    skel_parent = np.full(M, -1, dtype=np.int64)
+    n_paths = 0
+    while valid.any():
+        i = int(np.argmax(np.where(valid, dist, -np.inf)))
+        path = []
+        j = i
+        while not in_skel[j]:
+            path.append(j)
+            j = int(pred[j])
+        path_arr = np.array(path, dtype=np.int64)
+        skel_parent[path_arr] = np.append(path_arr[1:], j)
+        in_skel[path_arr] = True
+        valid[path_arr] = False
+        n_paths += 1
+        radii = params.invalidation_scale * rad[path_arr] + params.invalidation_voxels * voxel
+        for lst in kd.query_ball_point(pts[path_arr], radii):
+            valid[lst] = False
+    rep["n_paths"] = n_paths
+
+    # ------------------------------------------------ skeleton -> branches (lists of node ids)
+    nodes = np.flatnonzero(in_skel)
+    children: dict[int, list[int]] = {int(n): [] for n in nodes}
+    for n in nodes:
+        if skel_parent[n] >= 0:
+            children[int(skel_parent[n])].append(int(n))
+    branches: dict[int, dict] = {}
+    stack = [(root, -1)]
+    nb = 0
+    while stack:
+        first, parent = stack.pop()
+        chain = [first] if parent == -1 else [int(skel_parent[first]), first]
+        cur = first
+        while len(children[cur]) == 1:
+            cur = children[cur][0]
+            chain.append(cur)
+        if parent == -1 and len(chain) == 1:
+            chain = [first, first]
+        bid = nb
+        nb += 1
+        branches[bid] = {"nodes": chain, "parent": parent, "children": []}
+        if parent >= 0:
+            branches[parent]["children"].append(bid)
+        for c in children[cur]:
+            stack.append((c, bid))
+    rep["n_branches_raw"] = len(branches)
+
+    def blen(b):
+        return _polyline_length(pts[b["nodes"]])
+
+    def merge_into_parent_if_single(pid: int) -> None:
+        p = branches[pid]
+        if len(p["children"]) == 1:
+            cid = p["children"][0]
+            c = branches.pop(cid)
+            p["nodes"] = p["nodes"] + c["nodes"][1:]
+            p["children"] = c["children"]
+            for g in c["children"]:
+                branches[g]["parent"] = pid
+
+    n_pruned = n_merged = 0
+    changed = True
+    while changed:
+        changed = False
+        # prune short terminal twigs (shortest first, one per parent per round)
+        leaves = [bid for bid, b in branches.items() if not b["children"] and b["parent"] >= 0]
+        leaves.sort(key=lambda bid: blen(branches[bid]))
+        touched: set[int] = set()
+        for bid in leaves:
+            b = branches[bid]
+            pid = b["parent"]
+            if pid in touched:
+                continue
+            if blen(b) < params.prune_factor * rad[b["nodes"][0]]:
+                del branches[bid]
+                branches[pid]["children"].remove(bid)
+                touched.add(pid)
+                n_pruned += 1
+                changed = True
+        for pid in touched:
+            if pid in branches:
+                merge_into_parent_if_single(pid)
+        # collapse short internal branches -> multifurcations
+        for bid in list(branches):
+            if bid not in branches:
+                continue
+            b = branches[bid]
+            if b["parent"] < 0 or not b["children"]:
+                continue
+            if blen(b) < params.merge_factor * rad[b["nodes"][0]]:
+                pid = b["parent"]
+                for cid in b["children"]:
+                    c = branches[cid]
+                    c["nodes"] = b["nodes"] + c["nodes"][1:]
+                    c["parent"] = pid
+                    branches[pid]["children"].append(cid)
+                branches[pid]["children"].remove(bid)
+                del branches[bid]
+                n_merged += 1
+                changed = True
+    rep["n_branches_pruned"] = n_pruned
+    rep["n_branches_merged"] = n_merged
+    rep["n_branches_after_pruning"] = len(branches)
+
+    # ------------------------------------------------ polylines: smooth, resample, radius
+    out: list[GraphBranch] = []
+    order = [0]
+    ids = {}
+    gen = {0: 0}
+    k = 0
+    while k < len(order):
+        bid = order[k]
+        ids[bid] = k
+        for c in branches[bid]["children"]:
+            gen[c] = gen[bid] + 1
+            order.append(c)
+        k += 1
+    fine = 0.25 * voxel
+    ends: dict[int, np.ndarray] = {}
+    for bid in order:
+        b = branches[bid]
+        p = pts[b["nodes"]]
+        if b["parent"] >= 0:
+            p = p.copy()
+            p[0] = ends[b["parent"]]  # share the junction point exactly
+        q = _resample(p, fine)
+        if params.smooth_voxels > 0 and len(q) > 2:
+            sig = params.smooth_voxels * voxel / fine
+            s = np.stack([ndimage.gaussian_filter1d(q[:, a], sig, mode="nearest") for a in range(3)], axis=1)
+            # blend towards the fixed end points
+            t = np.arange(len(q))
+            wgt = np.clip(np.minimum(t, len(q) - 1 - t) / max(sig, 1e-9), 0, 1)[:, None]
+            s = wgt * s + (1 - wgt) * q
+            inside = field.sample(field.to_index(s))[:, 0] < 0
+            q = np.where(inside[:, None], s, q)
+        q = _resample(q, params.resample_step_mm * 1e-3)
+        q[0], q[-1] = p[0], p[-1]
+        ends[bid] = q[-1]
+        r = np.maximum(field.radius(field.to_index(q)), 0.0)
+        out.append(GraphBranch(ids[bid], -1 if b["parent"] < 0 else ids[b["parent"]], gen[bid], q, r))
+    graph = CentrelineGraph(out)
+
+    # ------------------------------------------------ loops: contacts the tree does not explain
+    rep["loops_broken"] = _count_loops(graph, pts[in_root], pairs, in_root, voxel, params)
+    if rep["loops_broken"]:
+        log.warning("medial axis: broke %d loop(s) in the lumen to make a tree", rep["loops_broken"])
+    return graph, rep
+
+
+def _bridge_components(G, pts: np.ndarray, field: _Field, voxel: float, max_rounds: int = 20):
+    """Join medial clusters that a straight segment inside the lumen connects to the largest one.
+
+    Gaps in the medial cloud (sparse surface samples, the neck where a thin
+    airway leaves a wide one) would otherwise cut the graph; a fragment with no
+    in-lumen segment to the rest (a truly disconnected lumen) stays apart.
+    """
+    added = 0
+    for _ in range(max_rounds):
+        ncomp, comp = csgraph.connected_components(G, directed=False)
+        if ncomp == 1:
+            break
+        main = int(np.argmax(np.bincount(comp)))
+        mi = np.flatnonzero(comp == main)
+        kd = cKDTree(pts[mi])
+        rows, cols, ws = [], [], []
+        for c in range(ncomp):
+            if c == main:
+                continue
+            ci = np.flatnonzero(comp == c)
+            d, j = kd.query(pts[ci])
+            for o in np.argsort(d)[:8]:
+                a, b = pts[ci[o]], pts[mi[j[o]]]
+                n = max(2, int(np.ceil(d[o] / (0.25 * voxel))))
+                t = np.linspace(0.0, 1.0, n + 1)[1:-1, None]
+                if len(t) == 0 or np.all(field.sample(field.to_index(a + t * (b - a)))[:, 0] < 0):
+                    rows.append(ci[o])
+                    cols.append(mi[j[o]])
+                    ws.append(d[o] + 1e-12)
+                    break
+        if not rows:
+            break
+        added += len(rows)
+        B = sparse.coo_matrix((ws, (rows, cols)), shape=G.shape).tocsr()
+        G = G + B + B.T
+    return G, added
+
+
+def _count_loops(graph: CentrelineGraph, pts_root: np.ndarray, pairs: np.ndarray, in_root: np.ndarray,
+                 voxel: float, params: MedialAxisParams) -> int:
+    """Branch pairs that are not parent/child but touch (medial neighbours inside the lumen) far from any junction.
+
+    Heuristic: a contact farther than ``10 x`` the local radius from every
+    bifurcation node is a loop closure (siblings diverging at >= ~10 degrees
+    overlap only within ~(r1 + r2) / sin(angle) of their junction).
+    """
+    if len(pairs) == 0 or len(graph.branches) < 2:
+        return 0
+    P, R, B = graph.all_points()
+    kd = cKDTree(P)
+    idx_map = np.full(len(in_root), -1, dtype=np.int64)
+    idx_map[np.flatnonzero(in_root)] = np.arange(int(in_root.sum()))
+    sel = in_root[pairs[:, 0]] & in_root[pairs[:, 1]]
+    pr = idx_map[pairs[sel]]
+    dd, nn = kd.query(pts_root)
+    owner = B[nn]
+    a, b = owner[pr[:, 0]], owner[pr[:, 1]]
+    diff = a != b
+    pr, a, b = pr[diff], a[diff], b[diff]
+    if len(pr) == 0:
+        return 0
+    parent = {br.id: br.parent for br in graph.branches}
+
+    def ancestors(x):
+        out = [x]
+        while parent[out[-1]] != -1:
+            out.append(parent[out[-1]])
+        return out
+
+    nodes = np.array([br.points[-1] for br in graph.branches if graph.children(br.id)] + [graph.root.points[0]])
+    nkd = cKDTree(nodes)
+    loops = set()
+    for (x, y) in {(int(min(u, v)), int(max(u, v))) for u, v in zip(a, b)}:
+        ax, ay = ancestors(x), ancestors(y)
+        common = set(ax) & set(ay)
+        hops = min(ax.index(c) + ay.index(c) for c in common)
+        if hops < 2:
+            continue
+        m = (a == x) & (b == y) | (a == y) & (b == x)
+        mid = 0.5 * (pts_root[pr[m, 0]] + pts_root[pr[m, 1]])
+        rr = np.maximum(R[nn[pr[m, 0]]], voxel)
+        dn, _ = nkd.query(mid)
+        if np.any(dn > 10.0 * rr + params.link_voxels * voxel):
+            loops.add((x, y))
+    return len(loops)

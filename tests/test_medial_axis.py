@@ -1,0 +1,324 @@
+"""Medial axis extraction (anatomy.medial_axis) and centreline metrics (evaluate.centreline)."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from room_pipeline.anatomy.centreline import CentrelineGraph, GraphBranch, from_airway_tree
+from room_pipeline.anatomy.medial_axis import (MedialAxisParams, crop_to_interior, extract_medial_axis)
+from room_pipeline.anatomy.sdf import SdfParams, compute_sdf
+from room_pipeline.anatomy.tree import AirwayTree, Branch
+from room_pipeline.errors import ConfigError, InputError
+from room_pipeline.evaluate.centreline import centreline_metrics
+from room_pipeline.io.volume import Volume, read_volume
+
+from .conftest import REPO, shared_path
+
+MM = 1e-3
+SP = 0.5 * MM
+
+
+# --------------------------------------------------------------------------- helpers
+def mask_of(tree: AirwayTree, spacing: float = SP, margin: float = 3 * MM) -> Volume:
+    """Voxel centre inside the capsule union -> mask on a grid around the tree."""
+    lo, hi = tree.bounds(margin)
+    shape = tuple(int(n) for n in np.ceil((hi - lo) / spacing).astype(int) + 1)
+    aff = np.eye(4)
+    aff[:3, :3] = np.eye(3) * spacing
+    aff[:3, 3] = lo
+    vol = Volume(np.zeros(shape, np.uint8), aff)
+    d, _ = tree.sdf(vol.index_to_world(np.indices(shape).reshape(3, -1).T), band=0.01)
+    return vol.with_data((d.reshape(shape) < 0).astype(np.uint8))
+
+
+def sdf_of(tree: AirwayTree, spacing: float = SP) -> Volume:
+    return compute_sdf(mask_of(tree, spacing), SdfParams())
+
+
+def check_tree(graph: CentrelineGraph, sdf: Volume | None = None) -> None:
+    """Structural invariants of an extracted graph."""
+    ids = {b.id for b in graph.branches}
+    assert graph.root.parent == -1
+    for b in graph.branches:
+        assert len(b.points) >= 2 and np.all(b.radius >= 0)
+        if b.parent != -1:
+            p = graph.branch(b.parent)
+            assert b.parent in ids
+            np.testing.assert_allclose(b.points[0], p.points[-1], atol=1e-9)
+            assert b.generation == p.generation + 1
+            assert len(graph.children(b.parent)) >= 2  # nodes are bifurcations only
+        assert len(graph.path_to(b.id)) == b.generation + 1  # no cycle
+    if sdf is not None:
+        from scipy import ndimage
+        P, _, _ = graph.all_points()
+        v = ndimage.map_coordinates(sdf.data, sdf.world_to_index(P).T, order=1, mode="nearest")
+        assert np.all(v < 0), "centreline leaves the lumen"
+
+
+def y_tree(angle_deg=35.0, child_len=20 * MM, r0=3 * MM, r1=2 * MM, r2=2 * MM, phi=0.0) -> AirwayTree:
+    a = np.deg2rad(angle_deg)
+    e = np.array([np.cos(phi), np.sin(phi), 0.0])
+    top, car = np.array([0, 0, 0.0]), np.array([0, 0, -25 * MM])
+    d1 = np.cos(a) * np.array([0, 0, -1.0]) + np.sin(a) * e
+    d2 = np.cos(a) * np.array([0, 0, -1.0]) - np.sin(a) * e
+    return AirwayTree([Branch(0, -1, 0, top, car, r0), Branch(1, 0, 1, car, car + child_len * d1, r1),
+                       Branch(2, 0, 1, car, car + child_len * d2, r2)])
+
+
+def leaf_ends(graph):
+    return np.array([b.points[-1] for b in graph.leaves()])
+
+
+def near(points, target, tol):
+    return bool(np.min(np.linalg.norm(points - np.asarray(target), axis=1)) <= tol)
+
+
+# --------------------------------------------------------------------------- params
+def test_params_yaml_matches_defaults():
+    d = yaml.safe_load((REPO / "conf" / "medial_axis" / "default.yaml").read_text())
+    assert MedialAxisParams.from_dict(d) == MedialAxisParams()
+    assert set(d) == set(MedialAxisParams().__dict__)
+
+
+def test_params_reject_unknown_and_bad_values():
+    with pytest.raises(ConfigError, match="medial_axis.bogus"):
+        MedialAxisParams.from_dict({"bogus": 1})
+    with pytest.raises(ConfigError, match="step_voxels"):
+        MedialAxisParams.from_dict({"step_voxels": 0})
+    with pytest.raises(ConfigError, match="n_surface_samples"):
+        MedialAxisParams.from_dict({"n_surface_samples": 1.5})
+    with pytest.raises(ConfigError, match="min_descent"):
+        MedialAxisParams.from_dict({"min_descent": "x"})
+
+
+def test_no_interior_raises():
+    with pytest.raises(InputError, match="no interior"):
+        extract_medial_axis(Volume(np.ones((8, 8, 8), np.float32), np.eye(4) * 1e-3 + np.diag([0, 0, 0, 1 - 1e-3])))
+
+
+# --------------------------------------------------------------------------- metrics on hand-built graphs
+def _g(branches):
+    return CentrelineGraph([GraphBranch(i, p, g, np.asarray(pts, float) * MM, np.full(len(pts), r * MM))
+                            for i, p, g, pts, r in branches])
+
+
+def _y_graph(shift=(0, 0, 0)):
+    s = np.asarray(shift, float)
+    return _g([(0, -1, 0, [[0, 0, 0] + s, [0, 0, -20] + s], 4.0),
+               (1, 0, 1, [[0, 0, -20] + s, [10, 0, -30] + s], 3.0),
+               (2, 0, 1, [[0, 0, -20] + s, [-10, 0, -30] + s], 3.0)])
+
+
+def test_metrics_identity():
+    m = centreline_metrics(_y_graph(), _y_graph(), 1 * MM)
+    assert m["dist_ext_to_true_mean_m"] < 1e-9 and m["dist_true_to_ext_mean_m"] < 1e-9
+    assert m["detection_rate"] == 1.0 and m["detection_rate_large"] == 1.0
+    assert m["spurious_fraction"] == 0.0
+    assert m["bifurcation_error_median_m"] == pytest.approx(0.0, abs=1e-12)
+    assert m["detection_by_generation"]["1"] == {"n": 2, "detected": 2, "rate": 1.0}
+
+
+def test_metrics_shift_and_tolerances():
+    m = centreline_metrics(_y_graph((0, 0.3, 0)), _y_graph(), 1 * MM)  # perpendicular to every branch
+    assert m["dist_ext_to_true_mean_m"] == pytest.approx(0.3 * MM, rel=0.15)
+    assert m["bifurcation_error_median_m"] == pytest.approx(0.3 * MM, rel=1e-6)
+    assert m["detection_rate"] == 1.0 and m["spurious_fraction"] == 0.0
+    # shifted by more than half the radius (and > 1 voxel): nothing detected, everything spurious
+    m = centreline_metrics(_y_graph((3.0, 0, 0)), _y_graph(), 0.5 * MM)
+    assert m["detection_rate"] == 0.0 and m["spurious_fraction"] == 1.0
+
+
+def test_metrics_missing_and_spurious_branch():
+    truth = _y_graph()
+    missing = _g([(0, -1, 0, [[0, 0, 0], [0, 0, -20], [10, 0, -30]], 4.0)])  # one child missed
+    m = centreline_metrics(missing, truth, 1 * MM)
+    assert m["detection_rate"] == pytest.approx(2 / 3)
+    assert m["detection_by_generation"]["1"]["detected"] == 1
+    assert m["n_extracted_bifurcations"] == 0
+    twig = _g([(0, -1, 0, [[0, 0, 0], [0, 0, -10]], 4.0), (1, 0, 1, [[0, 0, -10], [0, 8, -10]], 1.0),
+               (2, 0, 1, [[0, 0, -10], [0, 0, -20]], 4.0), (3, 2, 2, [[0, 0, -20], [10, 0, -30]], 3.0),
+               (4, 2, 2, [[0, 0, -20], [-10, 0, -30]], 3.0)])
+    m = centreline_metrics(twig, truth, 1 * MM)
+    assert m["n_spurious"] == 1 and m["spurious_branch_ids"] == [1]
+    assert m["detection_rate"] == 1.0
+
+
+def test_metrics_large_branch_filter():
+    truth = _g([(0, -1, 0, [[0, 0, 0], [0, 0, -20]], 4.0), (1, 0, 1, [[0, 0, -20], [10, 0, -30]], 3.0),
+                (2, 0, 1, [[0, 0, -20], [-10, 0, -30]], 0.5)])
+    ext = _g([(0, -1, 0, [[0, 0, 0], [0, 0, -20], [10, 0, -30]], 4.0)])
+    m = centreline_metrics(ext, truth, 1 * MM, min_radius_voxels=2.0)
+    assert m["n_true_branches_large"] == 2 and m["detection_rate_large"] == 1.0
+    assert m["detection_rate"] == pytest.approx(2 / 3)
+
+
+# --------------------------------------------------------------------------- synthetic anatomy
+def test_y_bifurcation_accuracy():
+    tree = y_tree()
+    sdf = sdf_of(tree)
+    res = extract_medial_axis(sdf)
+    g = res.graph
+    check_tree(g, sdf)
+    assert len(g.branches) == 3 and len(g.children(g.root.id)) == 2
+    assert g.root.points[0][2] > -3 * MM  # starts at the trachea's superior end
+    m = centreline_metrics(g, from_airway_tree(tree, 0.25 * MM), SP)
+    assert m["dist_ext_to_true_mean_vox"] < 0.5
+    assert m["detection_rate"] == 1.0 and m["spurious_fraction"] == 0.0
+    assert m["bifurcation_error_median_m"] < 1 * MM
+    r = g.root.radius[len(g.root.radius) // 2]
+    assert r == pytest.approx(3 * MM, abs=0.6 * SP)  # mask discretisation: the wall lies anywhere within a voxel
+    rep = res.report
+    assert rep["n_surface_samples"] > 0 and rep["n_medial_points"] > 0 and "timings" in rep
+    import json
+    json.dumps(rep)
+    assert res.medial_points.shape == (len(res.medial_radius), 3)
+
+
+def test_trifurcation():
+    car = np.array([0, 0, -25 * MM])
+    br = [Branch(0, -1, 0, [0, 0, 0], car, 3 * MM)]
+    for k in range(3):
+        phi = 2 * np.pi * k / 3
+        d = np.array([0.6 * np.cos(phi), 0.6 * np.sin(phi), -0.8])
+        br.append(Branch(k + 1, 0, 1, car, car + 18 * MM * d, 1.8 * MM))
+    tree = AirwayTree(br)
+    sdf = sdf_of(tree)
+    g = extract_medial_axis(sdf).graph
+    check_tree(g, sdf)
+    for b in br[1:]:
+        assert near(leaf_ends(g), b.end, 2 * MM)
+    assert len(g.leaves()) == 3
+    # one node with three children, or two nodes less than a radius apart
+    nodes = np.array([b.points[-1] for b in g.branches if g.children(b.id)])
+    assert len(nodes) <= 2 and np.max(np.linalg.norm(nodes - car, axis=1)) < 3 * MM
+    m = centreline_metrics(g, from_airway_tree(tree, 0.25 * MM), SP)
+    assert m["detection_rate"] == 1.0 and m["spurious_fraction"] == 0.0
+
+
+def test_very_short_branch_kept_and_bump_pruned():
+    car = np.array([0, 0, -25 * MM])
+    tree = AirwayTree([Branch(0, -1, 0, [0, 0, 0], car, 3 * MM),
+                       Branch(1, 0, 1, car, car + [0, 0, -15 * MM], 2.5 * MM),
+                       Branch(2, 0, 1, car, car + 9 * MM * np.array([0.8, 0, -0.6]), 1.5 * MM)])
+    sdf = sdf_of(tree)
+    res = extract_medial_axis(sdf)
+    check_tree(res.graph, sdf)
+    assert len(res.graph.leaves()) == 2
+    assert near(leaf_ends(res.graph), tree.branch(2).end, 1.5 * MM)
+    assert res.report["n_branches_raw"] >= res.report["n_branches_after_pruning"]
+
+
+def test_child_nearly_parallel_to_parent():
+    car = np.array([0, 0, -25 * MM])
+    d = np.array([np.sin(np.deg2rad(15)), 0, -np.cos(np.deg2rad(15))])
+    tree = AirwayTree([Branch(0, -1, 0, [0, 0, 0], car, 2.5 * MM),
+                       Branch(1, 0, 1, car, car + [0, 0, -25 * MM], 2.0 * MM),
+                       Branch(2, 0, 1, car, car + 25 * MM * d, 1.5 * MM)])
+    sdf = sdf_of(tree)
+    g = extract_medial_axis(sdf).graph
+    check_tree(g, sdf)
+    assert len(g.leaves()) == 2
+    for b in tree.branches[1:]:
+        assert near(leaf_ends(g), b.end, 1.5 * MM)
+    m = centreline_metrics(g, from_airway_tree(tree, 0.25 * MM), SP)
+    assert m["dist_ext_to_true_mean_vox"] < 1.0 and m["spurious_fraction"] == 0.0
+
+
+def test_loop_is_broken_with_warning(caplog):
+    top, car, bot = np.array([0, 0, 0.0]), np.array([0, 0, -20 * MM]), np.array([0, 0, -50 * MM])
+    L, R = np.array([-10 * MM, 0, -35 * MM]), np.array([10 * MM, 0, -35 * MM])
+    tree = AirwayTree([Branch(0, -1, 0, top, car, 3 * MM), Branch(1, 0, 1, car, L, 1.8 * MM),
+                       Branch(2, 0, 1, car, R, 1.8 * MM), Branch(3, 1, 2, L, bot, 1.8 * MM),
+                       Branch(4, 2, 2, R, bot, 1.8 * MM)])
+    sdf = sdf_of(tree)
+    with caplog.at_level(logging.WARNING, logger="room_pipeline.anatomy.medial_axis"):
+        res = extract_medial_axis(sdf)
+    check_tree(res.graph, sdf)
+    assert res.report["loops_broken"] >= 1
+    assert any("loop" in r.message for r in caplog.records)
+    # the whole loop is still covered
+    m = centreline_metrics(res.graph, from_airway_tree(tree, 0.25 * MM), SP)
+    assert m["dist_true_to_ext_p95_vox"] < 4
+
+
+def test_disconnected_fragment_dropped_with_warning(caplog):
+    tree = y_tree()
+    frag = AirwayTree(tree.branches + [Branch(9, -1, 0, [15 * MM, 0, -5 * MM], [15 * MM, 0, -15 * MM], 1.5 * MM)])
+    sdf = sdf_of(frag)
+    with caplog.at_level(logging.WARNING, logger="room_pipeline.anatomy.medial_axis"):
+        res = extract_medial_axis(sdf)
+    check_tree(res.graph, sdf)
+    assert res.report["dropped_components"] == 1 and res.report["dropped_cluster_points"] > 0
+    assert any("dropped 1 component" in r.message for r in caplog.records)
+    P, _, _ = res.graph.all_points()
+    assert np.all(P[:, 0] < 12 * MM)  # nothing from the fragment
+
+
+def test_one_voxel_wide_airway():
+    sp = SP
+    tree = AirwayTree([Branch(0, -1, 0, [0, 0, 0], [0, 0, -15 * MM], 2.5 * MM)])
+    mask = mask_of(tree, sp, margin=14 * MM)
+    m = mask.data
+    # a straight one-voxel line leaving the trachea's end sideways along +x for 10 mm
+    end = np.round(mask.world_to_index(np.array([[0, 0, -15 * MM]]))[0]).astype(int)
+    n = int(round(10 * MM / sp))
+    m[end[0]:end[0] + int(round(2.5 * MM / sp)) + n, end[1], end[2]] = 1
+    sdf = compute_sdf(mask.with_data(m), SdfParams())
+    g = extract_medial_axis(sdf).graph
+    check_tree(g)
+    tip = mask.index_to_world(np.array([[end[0] + int(round(2.5 * MM / sp)) + n - 1, end[1], end[2]]]))[0]
+    assert near(leaf_ends(g), tip, 2 * sp)
+
+
+@settings(max_examples=4, deadline=None, suppress_health_check=list(HealthCheck))
+@given(angle=st.floats(25, 60), r1=st.floats(1.2, 2.5), phi=st.floats(0, np.pi))
+def test_invariants_random_y(angle, r1, phi):
+    tree = y_tree(angle_deg=angle, r1=r1 * MM, r2=1.5 * MM, child_len=12 * MM, phi=phi)
+    sdf = sdf_of(tree, 0.6 * MM)
+    g = extract_medial_axis(sdf).graph
+    check_tree(g, sdf)
+    assert len(g.leaves()) == 2
+    for b in tree.branches[1:]:
+        assert near(leaf_ends(g), b.end, 2 * MM)
+
+
+def test_phantom_coarse_accuracy():
+    from room_pipeline.anatomy.phantom import PhantomParams, make_phantom
+
+    ph = make_phantom(PhantomParams.from_dict({"spacing_mm": 1.0}), seed=0)
+    res = extract_medial_axis(ph.sdf)
+    check_tree(res.graph)
+    m = centreline_metrics(res.graph, from_airway_tree(ph.tree, 0.5 * MM), 1 * MM)
+    assert m["dist_ext_to_true_mean_vox"] <= 0.5
+    assert m["detection_rate_large"] >= 0.95
+    assert m["spurious_fraction"] <= 0.05
+    assert m["bifurcation_error_median_m"] <= 1.5 * MM
+
+
+# --------------------------------------------------------------------------- real anatomy (../shared)
+REAL = [("airway_masks", "medmpd", f"patient{p}", "bronchialTree.nii.gz") for p in (1, 2, 3)] + \
+       [("airway_masks", "airquant_demo", "github_demo_seg.nii.gz")]
+
+
+@pytest.mark.shared
+@pytest.mark.slow
+@pytest.mark.parametrize("parts", REAL, ids=lambda p: p[-2] if p[-2] != "airquant_demo" else "airquant")
+def test_real_masks(parts):
+    mask = read_volume(shared_path(*parts))
+    crop = crop_to_interior(mask, 6)
+    sdf = compute_sdf(crop, SdfParams())
+    res = extract_medial_axis(sdf)
+    g = res.graph
+    check_tree(g)
+    assert len(g.branches) >= 15
+    assert max(b.generation for b in g.branches) >= 3
+    # the root is the trachea: wide, and starts near the top of the mask
+    zmax = crop.index_to_world(np.argwhere(crop.data > 0).astype(float))[:, 2].max()
+    assert g.root.points[0][2] > zmax - 15 * MM
+    assert g.root.mean_radius > np.median([b.mean_radius for b in g.branches])
