@@ -14,6 +14,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from stage_deps import ROOT, stage_deps  # noqa: E402
 
 P = "${output_dir}/${key}"
+#: per-sequence stages fan out over patients x sequences (DVC matrix; a dict matrix yields its keys)
+MATRIX = "matrix"
+Q = "${output_dir}/${item.patient}"
+S = "${item.sequence}"
 
 #: name -> (foreach, extra deps, params, outs, metrics file)
 STAGES = {
@@ -29,6 +33,15 @@ STAGES = {
     "validate_anatomy": ("${phantoms}", [f"{P}/ground_truth", f"{P}/anatomy/airway_mask.nii.gz",
                                          f"{P}/anatomy/sdf.nii.gz", f"{P}/anatomy/lung_model.obj"],
                          ["sdf", "mesh"], [], f"{P}/metrics/anatomy_validation.json"),
+    "medial_axis": ("${patients}", [f"{P}/anatomy/sdf.nii.gz"], ["medial_axis"],
+                    [f"{P}/anatomy/medial_axis.ply", f"{P}/anatomy/centreline_graph.json"],
+                    f"{P}/metrics/medial_axis.json"),
+    "validate_centreline": ("${phantoms}", [f"{P}/ground_truth", f"{P}/anatomy/centreline_graph.json"],
+                            ["medial_axis"], [], f"{P}/metrics/centreline_validation.json"),
+    "trajectory": (MATRIX, [f"{Q}/anatomy/centreline_graph.json", f"{Q}/anatomy/sdf.nii.gz"],
+                   ["trajectory", "sequences"],
+                   [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/{S}/metadata/timestamps.json",
+                    f"{Q}/{S}/metadata/trajectory_tum.txt"], f"{Q}/metrics/trajectory_{S}.json"),
 }
 
 HEADER = """\
@@ -42,14 +55,20 @@ HEADER = """\
 def render() -> str:
     lines = [HEADER.rstrip("\n"), "stages:"]
     for name, (foreach, extra, params, outs, metrics) in STAGES.items():
-        lines += [f"  {name}:", f"    foreach: {foreach}", "    do:",
-                  f"      cmd: room stage {name} --patient ${{key}} --params params.yaml --quiet",
-                  "      deps:"]
-        lines += [f"        - {d}" for d in extra + stage_deps(name)]
-        lines += ["      params:"] + [f"        - {p}" for p in params]
+        if foreach == MATRIX:
+            ind = "    "
+            lines += [f"  {name}:", "    matrix:", "      patient: ${patients}", "      sequence: ${sequences}",
+                      f"{ind}cmd: room stage {name} --patient ${{item.patient}}/${{item.sequence}} "
+                      "--params params.yaml --quiet"]
+        else:
+            ind = "      "
+            lines += [f"  {name}:", f"    foreach: {foreach}", "    do:",
+                      f"{ind}cmd: room stage {name} --patient ${{key}} --params params.yaml --quiet"]
+        lines += [f"{ind}deps:"] + [f"{ind}  - {d}" for d in extra + stage_deps(name)]
+        lines += [f"{ind}params:"] + [f"{ind}  - {p}" for p in params]
         if outs:
-            lines += ["      outs:"] + [f"        - {o}" for o in outs]
-        lines += ["      metrics:", f"        - {metrics}:", "            cache: false"]
+            lines += [f"{ind}outs:"] + [f"{ind}  - {o}" for o in outs]
+        lines += [f"{ind}metrics:", f"{ind}  - {metrics}:", f"{ind}      cache: false"]
     return "\n".join(lines) + "\n"
 
 

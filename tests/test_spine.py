@@ -42,7 +42,8 @@ def test_dvc_yaml_is_generated_from_stage_table():
 @pytest.mark.parametrize("name", stages.STAGES)
 def test_dvc_stage_lists_exactly_its_code_deps(name):
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())
-    deps = [d for d in dvc["stages"][name]["do"]["deps"] if d.startswith("src/")]
+    st = dvc["stages"][name]
+    deps = [d for d in st.get("do", st)["deps"] if d.startswith("src/")]
     assert sorted(deps) == stage_deps.stage_deps(name)
     # and the closure is what Python really imports for that stage
     code = ("import sys, room_pipeline.cli, room_pipeline.stages.%s as m;"
@@ -54,22 +55,30 @@ def test_dvc_stage_lists_exactly_its_code_deps(name):
 
 @pytest.mark.parametrize("name", stages.STAGES)
 def test_dvc_stage_outs_match_stage_module(name):
+    """dvc.yaml outs/metrics == what the stage module says it writes; params keys exist."""
     cfg = compose(conf_dir=REPO / "conf")
-    dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())
-    st = dvc["stages"][name]
-    patients = cfg.phantoms if st["foreach"] == "${phantoms}" else cfg.patients
-    for key in patients:
+    st = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"][name]
+    module = stages.load(name)
+    fan = stages.FAN_OUT[name]
+    if fan == "sequences":
+        body, keys = st, [(p, s) for p in cfg.patients for s in cfg.sequences]
+    else:
+        assert st["foreach"] == "${%s}" % fan
+        body, keys = st["do"], [(k, None) for k in (cfg.phantoms if fan == "phantoms" else cfg.patients)]
+    assert keys, f"{name}: nothing to fan out over in the default config"
+    for patient, seq in keys:
         def render(s: str) -> str:
-            return s.replace("${output_dir}", cfg.output_dir).replace("${key}", key)
-        outs = {render(o) for o in st["do"].get("outs", [])}
-        outs |= {render(next(iter(m))) if isinstance(m, dict) else render(m) for m in st["do"]["metrics"]}
-        module = stages.load(name)
-        declared = {str(p) for p in module.outputs(cfg, key)} | {str(PatientPaths(Path(cfg.output_dir), key).metrics(
-            "anatomy_validation" if name == "validate_anatomy" else name))}
-        assert outs == declared
-        for p in st["do"]["params"]:
+            s = s.replace("${output_dir}", cfg.output_dir).replace("${key}", patient)
+            return s.replace("${item.patient}", patient).replace("${item.sequence}", seq or "")
+        outs = {render(o) for o in body.get("outs", [])}
+        metrics = {render(next(iter(m))) if isinstance(m, dict) else render(m) for m in body["metrics"]}
+        key = f"{patient}/{seq}" if seq else patient
+        assert outs | metrics == {str(p) for p in module.outputs(cfg, key)} | metrics
+        metric_name = Path(next(iter(metrics))).stem
+        assert metric_name in (name, "anatomy_validation", "centreline_validation", f"{name}_{seq}")
+        for p in body["params"]:
             node = cfg
-            for part in p.replace("${key}", key).split("."):
+            for part in render(p).split("."):
                 assert part in node, f"{name}: param {p} not in config"
                 node = node[part]
 

@@ -1,7 +1,8 @@
 """The ``room`` command line.
 
-    room stage NAME --patient ID [--params params.yaml] [key=value ...]
-        Run one pipeline stage for one patient (what dvc.yaml calls).  The
+    room stage NAME --patient ID[/SEQUENCE] [--params params.yaml] [key=value ...]
+        Run one pipeline stage for one patient (per-sequence stages such as
+        `trajectory` take PATIENT/SEQUENCE; what dvc.yaml calls).  The
         config is the composition of conf/ with the Hydra overrides given, or,
         with --params, that composed file plus dot-list overrides.
     room run [--patient ID] [--until STAGE] [hydra overrides ...]
@@ -57,7 +58,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     patient = args.patient or patients[0]
     patient_entry(cfg, patient)  # validates
     is_phantom = patient in (cfg.get("phantoms") or {})
-    order = [s for s in stages.STAGES if is_phantom or s not in stages.PHANTOM_ONLY]
+    order = [s for s in stages.STAGES if is_phantom or stages.FAN_OUT[s] != "phantoms"]
     if args.until:
         if args.until not in order:
             raise RoomError(f"--until {args.until}: not a stage of this run ({', '.join(order)})")
@@ -66,12 +67,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     config_path = run_dir / "run_config.yaml"
     write_text(config_path, OmegaConf.to_yaml(cfg))
     for name in order:
-        print(f"room run: stage {name} ({patient})", flush=True)
-        rc = subprocess.call([sys.executable, "-m", "room_pipeline.cli", "stage", name,
-                              "--patient", patient, "--params", str(config_path)])
-        if rc != 0:
-            print(f"room: error: stage '{name}' failed for {patient} (exit {rc})", file=sys.stderr)
-            return rc
+        keys = ([f"{patient}/{s}" for s in cfg.get("sequences") or []]
+                if stages.FAN_OUT[name] == "sequences" else [patient])
+        for key in keys:
+            print(f"room run: stage {name} ({key})", flush=True)
+            rc = subprocess.call([sys.executable, "-m", "room_pipeline.cli", "stage", name,
+                                  "--patient", key, "--params", str(config_path)])
+            if rc != 0:
+                print(f"room: error: stage '{name}' failed for {key} (exit {rc})", file=sys.stderr)
+                return rc
     print(f"room run: done -> {run_dir}")
     return 0
 

@@ -7,6 +7,9 @@
     ``anatomy/airway_mask.nii.gz``      airway lumen mask (uint8, 1 = lumen)
     ``anatomy/sdf.nii.gz``              signed distance, mm, negative inside the lumen
     ``anatomy/lung_model.obj``          watertight lumen surface, metres
+    ``anatomy/medial_axis.ply``         medial points with radius, polyline edges
+    ``anatomy/centreline_graph.json``   navigation tree (branches, parents, generations, radii)
+    ``sequence_YYY/metadata/``          trajectory.json, timestamps.json, trajectory_tum.txt
     ``metrics/<stage>.json``            per-stage DVC metrics
     ``sequence_YYY/...``                rendered sequences (later stages)
 """
@@ -94,6 +97,21 @@ class PatientPaths:
     @property
     def tet_mesh(self) -> Path:
         return self.anatomy / "lung_model_tet.npz"
+
+    @property
+    def medial_axis_ply(self) -> Path:
+        return self.anatomy / "medial_axis.ply"
+
+    @property
+    def centreline_graph(self) -> Path:
+        return self.anatomy / "centreline_graph.json"
+
+    # sequences
+    def sequence(self, sequence: str) -> Path:
+        return self.root / sequence
+
+    def sequence_metadata(self, sequence: str) -> Path:
+        return self.sequence(sequence) / "metadata"
 
     @property
     def metrics_dir(self) -> Path:

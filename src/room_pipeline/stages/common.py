@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import resource
 import time
 from pathlib import Path
@@ -60,9 +61,20 @@ class StageTimer:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _finite(obj: Any) -> Any:
+    """Replace NaN/inf by None (JSON has no such numbers)."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
 def write_metrics(paths: PatientPaths, stage: str, metrics: dict) -> None:
-    """DVC metrics file ``metrics/<stage>.json`` (JSON numbers only, atomically)."""
-    write_json(paths.metrics(stage), metrics)
+    """DVC metrics file ``metrics/<stage>.json`` (JSON numbers only, NaN -> null, atomically)."""
+    write_json(paths.metrics(stage), _finite(metrics))
 
 
 def read_json(path: str | Path) -> Any:

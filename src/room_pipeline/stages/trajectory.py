@@ -1,0 +1,68 @@
+"""Stage `trajectory`: centreline graph + SDF -> one camera path per sequence.
+
+Sequence ``i`` of the configured ``sequences`` list follows the ``i``-th target
+of ``trajectory.targets`` (see :func:`room_pipeline.planning.trajectory.select_targets`).
+Writes ``<patient>/sequence_YYY/metadata/{trajectory.json, timestamps.json, trajectory_tum.txt}``.
+"""
+from __future__ import annotations
+
+from omegaconf import DictConfig
+
+from ..anatomy.centreline import CentrelineGraph
+from ..config.compose import section
+from ..errors import ConfigError
+from ..io.atomic import write_json, write_text
+from ..io.volume import read_nifti_sdf
+from ..planning.trajectory import TrajectoryParams, plan_path, select_targets, timestamps_dict, volume_sdf_fn
+from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
+
+
+def split_key(key: str) -> tuple[str, str]:
+    """DVC matrix key ``<patient>/<sequence>`` -> (patient, sequence)."""
+    if "/" not in key:
+        raise ConfigError(f"trajectory stage needs --patient PATIENT/SEQUENCE, got '{key}'")
+    patient, sequence = key.split("/", 1)
+    return patient, sequence
+
+
+def outputs(cfg: DictConfig, key: str) -> list:
+    patient, sequence = split_key(key)
+    p = patient_paths(cfg, patient)
+    return [p.sequence_metadata(sequence) / name for name in ("trajectory.json", "timestamps.json",
+                                                               "trajectory_tum.txt")]
+
+
+def run(cfg: DictConfig, key: str) -> dict:
+    patient, sequence = split_key(key)
+    sequences = list(cfg.get("sequences") or [])
+    if sequence not in sequences:
+        raise ConfigError(f"unknown sequence '{sequence}' (sequences: {', '.join(sequences) or 'none'})")
+    params = TrajectoryParams.from_dict(section(cfg, "trajectory"))
+    paths = patient_paths(cfg, patient)
+    with StageTimer() as timer:
+        graph = CentrelineGraph.from_dict(read_json(paths.centreline_graph))
+        sdf = read_nifti_sdf(paths.sdf)
+        targets = select_targets(graph, params)
+        index = sequences.index(sequence)
+        if index >= len(targets):
+            raise ConfigError(f"{sequence} needs target #{index + 1} but trajectory.targets='{params.targets}' "
+                              f"yields {len(targets)} for {patient}")
+        traj = plan_path(graph, targets[index], volume_sdf_fn(sdf), params)
+    out = paths.sequence_metadata(sequence)
+    doc = traj.to_dict()
+    doc["metadata"] = metadata("trajectory", patient, cfg, ("trajectory",), sequence=sequence,
+                               target_index=index)
+    write_json(out / "trajectory.json", doc)
+    write_json(out / "timestamps.json", timestamps_dict(traj))
+    write_text(out / "trajectory_tum.txt", traj.to_tum())
+    summary = traj.summary()
+    metrics = {"frames": summary["frames"], "duration_s": round(summary["duration_s"], 3),
+               "length_mm": round(summary["length_m"] * 1e3, 3),
+               "max_curvature_per_m": round(summary["max_curvature_per_m"], 3),
+               "kappa_max_per_m": round(summary["kappa_max_per_m"], 3),
+               "min_clearance_mm": round(summary["min_clearance_m"] * 1e3, 4),
+               "min_clearance_minus_margin_mm": round(summary["min_clearance_minus_margin_m"] * 1e3, 4),
+               "target_reached": bool(traj.target.reached),
+               "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
+    write_metrics(paths, f"trajectory_{sequence}", metrics)
+    return metrics

@@ -1,0 +1,351 @@
+"""Trajectory planning: curvature bound, wall clearance, frames, timing, formats and hard cases."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from room_pipeline.anatomy.centreline import from_airway_tree
+from room_pipeline.anatomy.phantom import PhantomParams, grow_tree
+from room_pipeline.anatomy.tree import AirwayTree, Branch
+from room_pipeline.errors import ConfigError, InputError
+from room_pipeline.io.volume import Volume
+from room_pipeline.planning.trajectory import (TrajectoryParams, map_target_point, parse_tum, plan_path,
+                                               plan_trajectories, read_target_file, select_targets,
+                                               timestamps_dict, volume_sdf_fn)
+from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY
+
+from .conftest import REPO, shared_path
+
+MM = 1e-3
+KMAX = DEFAULT_GEOMETRY.kappa_max
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+def rotate_towards(d, perp, deg):
+    a = np.radians(deg)
+    return np.cos(a) * unit(d) + np.sin(a) * unit(perp)
+
+
+def chain_tree(specs, trachea=(0.0, 0.0, 0.06), trachea_end=(0.0, 0.0, 0.0), r0=8e-3):
+    """Capsule tree from (parent, direction, length m, radius m) specs; branch 0 the trachea."""
+    br = [Branch(0, -1, 0, np.array(trachea), np.array(trachea_end), r0)]
+    for i, (parent, direction, length, radius) in enumerate(specs, start=1):
+        p = br[parent]
+        br.append(Branch(i, parent, p.generation + 1, p.end, p.end + length * unit(direction), radius))
+    return AirwayTree(br)
+
+
+def check_trajectory(tr, sdf_exact=None, kmax=KMAX):
+    """Invariants every trajectory must satisfy."""
+    T = len(tr.timestamps)
+    assert T >= 2
+    np.testing.assert_allclose(tr.timestamps, np.arange(T) / tr.rate_hz, atol=1e-9)
+    R = tr.poses[:, :3, :3]
+    np.testing.assert_allclose(R.transpose(0, 2, 1) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
+    np.testing.assert_array_equal(tr.poses[:, 3], np.broadcast_to([0, 0, 0, 1.0], (T, 4)))
+    assert tr.max_curvature <= kmax and tr.curvature.max() <= kmax
+    assert np.all(tr.clearance >= tr.margin) and np.all(tr.margin >= 0)
+    if sdf_exact is not None:  # independent check of the reported clearance
+        np.testing.assert_allclose(-sdf_exact(tr.positions), tr.clearance, atol=1e-12)
+    assert np.all(np.diff(tr.arclength) >= 0)
+    # view direction = path tangent (finite differences of the positions, where the step is not tiny)
+    step = np.diff(tr.positions, axis=0)
+    n = np.linalg.norm(step, axis=1)
+    ok = n > 0.05 * MM
+    mid_z = 0.5 * (R[:-1, :, 2] + R[1:, :, 2])
+    cosang = np.einsum("ij,ij->i", step[ok] / n[ok, None],
+                       mid_z[ok] / np.linalg.norm(mid_z[ok], axis=1, keepdims=True))
+    assert cosang.min() > np.cos(np.radians(1.0))
+    # parallel transport: consecutive frames turn by small angles and barely roll about the view axis
+    rel = Rotation.from_matrix(np.einsum("tji,tjk->tik", R[:-1], R[1:])).as_rotvec()
+    assert np.abs(rel).max() < np.radians(3.0)
+    turn = np.linalg.norm(rel[:, :2], axis=1)
+    assert np.all(np.abs(rel[:, 2]) <= 0.05 * turn + 1e-6)
+
+
+# --------------------------------------------------------------------------- phantom tree
+
+
+@pytest.fixture(scope="module")
+def small_phantom():
+    tree = grow_tree(PhantomParams(max_generation=3, lung_points=4000), np.random.default_rng(0))
+    graph = from_airway_tree(tree, 1e-3)
+    return tree, graph
+
+
+@pytest.fixture(scope="module")
+def phantom_trajs(small_phantom):
+    tree, graph = small_phantom
+    params = TrajectoryParams(targets="leaves", max_generation=None, unreachable="nearest")
+    return plan_trajectories(graph, tree, params)
+
+
+def test_all_leaves_of_small_phantom_keep_bounds(small_phantom, phantom_trajs):
+    tree, graph = small_phantom
+    leaves = select_targets(graph, TrajectoryParams(max_generation=None))
+    assert len(phantom_trajs) == len(leaves) >= 4
+    sdf = lambda p: tree.sdf(p)[0]  # noqa: E731
+    reached = 0
+    for tr, leaf in zip(phantom_trajs, leaves):
+        check_trajectory(tr, sdf)
+        np.testing.assert_allclose(tr.positions[0], graph.root.points[0], atol=1e-12)
+        assert tr.route_branches[0] == graph.root.id
+        if tr.target.reached:
+            reached += 1
+            np.testing.assert_allclose(tr.positions[-1], graph.branch(leaf).points[-1], atol=1e-9)
+            assert tr.branch_id[-1] == leaf
+    assert reached >= len(leaves) // 2
+
+
+def test_initial_roll_image_up_anterior(phantom_trajs):
+    tr = phantom_trajs[0]
+    up = -tr.poses[0, :3, 1]  # image up = camera -y
+    z = tr.poses[0, :3, 2]
+    ant = np.array([0, 1.0, 0]) - z[1] * z
+    np.testing.assert_allclose(up, unit(ant), atol=1e-9)
+
+
+def test_timestamps_10hz_and_denser_near_bifurcations(phantom_trajs):
+    tr = max(phantom_trajs, key=lambda t: t.length)
+    steps = np.linalg.norm(np.diff(tr.positions, axis=0), axis=1)
+    assert steps.max() <= 5e-3 / 10 * 1.001  # never faster than speed_mm_s at 10 Hz
+    # slowed-down poses (bifurcations, bends) are spaced more densely than the others
+    slow = tr.speed < 0.6 * 5e-3
+    assert slow.any() and (~slow).any()
+    assert steps[slow[:-1]].mean() < 0.75 * steps[~slow[:-1]].mean()
+    d = timestamps_dict(tr)
+    assert d["count"] == len(tr.timestamps) and d["rate_hz"] == 10.0 and d["units"] == "s"
+
+
+def test_bifurcation_slowdown_is_where_the_junctions_are(small_phantom):
+    tree, graph = small_phantom
+    leaf = select_targets(graph, TrajectoryParams(max_generation=None))[0]
+    tr = plan_path(graph, leaf, tree, TrajectoryParams(curvature_slowdown=1.0, unreachable="nearest"))
+    chain = tr.route_branches
+    junctions = [graph.branch(b).points[-1] for b in chain[:-1]]
+    for j in junctions:
+        k = int(np.argmin(np.linalg.norm(tr.positions - j, axis=1)))
+        if np.linalg.norm(tr.positions[k] - j) < 3e-3:
+            assert tr.speed[k] < 0.6 * 5e-3
+    far = np.min([np.linalg.norm(tr.positions - j, axis=1) for j in junctions], axis=0) > 12e-3
+    np.testing.assert_allclose(tr.speed[far], 5e-3, rtol=1e-9)
+
+
+def test_tum_round_trip_and_json(phantom_trajs):
+    tr = phantom_trajs[0]
+    text = tr.to_tum()
+    lines = [ln for ln in text.splitlines() if not ln.startswith("#")]
+    assert len(lines) == len(tr.timestamps) and all(len(ln.split()) == 8 for ln in lines)
+    ts, poses = parse_tum(text)
+    np.testing.assert_allclose(ts, tr.timestamps, atol=1e-6)
+    np.testing.assert_allclose(poses, tr.poses, atol=1e-8)
+    d = json.loads(json.dumps(tr.to_dict()))
+    assert d["units"]["position"] == "m" and d["units"]["timestamp"] == "s"
+    assert len(d["frames"]) == len(tr.timestamps)
+    np.testing.assert_allclose(np.array(d["frames"][3]["pose"]), tr.poses[3], atol=1e-12)
+    assert d["conventions"]["camera_frame"].startswith("OpenCV")
+
+
+def test_volume_sdf_interpolation_path():
+    """The Volume (trilinear) SDF evaluator on a rasterised small tree."""
+    tree = chain_tree([(0, (0.5, 0.2, -1), 0.03, 5e-3), (0, (-0.6, 0.0, -1), 0.035, 5e-3)],
+                      trachea=(0, 0, 0.04), r0=7e-3)
+    sp = 0.6e-3
+    lo, hi = tree.bounds(3e-3)
+    shape = tuple(int(v) for v in np.ceil((hi - lo) / sp).astype(int) + 1)
+    aff = np.diag([sp, sp, sp, 1.0])
+    aff[:3, 3] = lo
+    grid = Volume(np.zeros(shape, np.float32), aff)
+    d, _ = tree.sdf(grid.index_to_world(np.indices(shape).reshape(3, -1).T), band=3e-3)
+    vol = grid.with_data(d.reshape(shape).astype(np.float32))
+    fn = volume_sdf_fn(vol)
+    # interpolation reproduces the samples at voxel centres and is outside beyond the grid
+    ijk = np.array([[3, 4, 5], [10, 11, 12]])
+    np.testing.assert_allclose(fn(grid.index_to_world(ijk)), vol.data[tuple(ijk.T)], atol=1e-7)
+    assert fn(np.array([[1.0, 1.0, 1.0]]))[0] > 0
+    graph = from_airway_tree(tree, 1e-3)
+    for leaf in (1, 2):
+        tr = plan_path(graph, leaf, vol, TrajectoryParams())
+        check_trajectory(tr, fn)
+        assert np.all(tree.sdf(tr.positions)[0] < 0)  # inside the true lumen
+
+
+# --------------------------------------------------------------------------- hard cases
+
+
+def test_trifurcation():
+    specs = [(0, rotate_towards((0, 0, -1), (np.cos(a), np.sin(a), 0), 30), 0.03, 4e-3)
+             for a in np.radians([0, 120, 240])]
+    tree = chain_tree(specs)
+    graph = from_airway_tree(tree, 1e-3)
+    assert len(graph.children(0)) == 3
+    for leaf in (1, 2, 3):
+        tr = plan_path(graph, leaf, tree, TrajectoryParams())
+        check_trajectory(tr, lambda p: tree.sdf(p)[0])
+        assert tr.target.reached and tr.branch_id[-1] == leaf
+
+
+def test_very_short_branch():
+    specs = [(0, rotate_towards((0, 0, -1), (1, 0, 0), 15), 0.002, 5e-3),   # 2 mm branch
+             (1, rotate_towards((0, 0, -1), (0, 1, 0), 25), 0.025, 3.5e-3),
+             (1, rotate_towards((0, 0, -1), (0, -1, 0), 25), 0.025, 3.5e-3),
+             (0, rotate_towards((0, 0, -1), (-1, 0, 0), 30), 0.03, 5e-3)]
+    tree = chain_tree(specs)
+    graph = from_airway_tree(tree, 1e-3)
+    assert graph.branch(1).length == pytest.approx(0.002)
+    for leaf in (2, 3, 4):
+        tr = plan_path(graph, leaf, tree, TrajectoryParams())
+        check_trajectory(tr, lambda p: tree.sdf(p)[0])
+        assert tr.target.reached
+
+
+def test_child_nearly_parallel_to_parent():
+    tree = chain_tree([(0, rotate_towards((0, 0, -1), (1, 0, 0), 3), 0.03, 5e-3),
+                       (0, rotate_towards((0, 0, -1), (-1, 0, 0), 40), 0.03, 4e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    for leaf in (1, 2):
+        tr = plan_path(graph, leaf, tree, TrajectoryParams())
+        check_trajectory(tr, lambda p: tree.sdf(p)[0])
+    # the nearly straight path hardly bends
+    assert plan_path(graph, 1, tree, TrajectoryParams()).max_curvature < 5.0
+
+
+def test_target_outside_the_tree():
+    tree = chain_tree([(0, (0.3, 0, -1), 0.03, 5e-3), (0, (-0.3, 0, -1), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    far = np.array([0.05, 0.04, -0.02])
+    with pytest.raises(InputError, match="outside the airway tree") as exc:
+        plan_path(graph, far, tree, TrajectoryParams(targets="points", points=[far.tolist()]))
+    assert "\n" not in str(exc.value)
+    tr = plan_path(graph, far, tree, TrajectoryParams(unreachable="nearest"))
+    assert not tr.target.reached and "outside the lumen" in tr.target.note
+    check_trajectory(tr, lambda p: tree.sdf(p)[0])
+    # a point inside a lumen maps to the nearest centreline point and is reached
+    inside = graph.branch(1).points[10] + np.array([0, 2e-3, 0])
+    bid, s, c, d = map_target_point(graph, inside, 1e-3)
+    assert bid == 1 and d == pytest.approx(2e-3, abs=1e-9)
+    tr = plan_path(graph, inside, tree, TrajectoryParams())
+    assert tr.target.reached and np.allclose(tr.positions[-1], c, atol=1e-9)
+
+
+def test_target_behind_a_bend_too_sharp():
+    # a narrow child turning back by 120 degrees: no path of curvature <= kappa_max fits in its lumen
+    tree = chain_tree([(0, rotate_towards((0, 0, -1), (1, 0, 0), 120), 0.025, 2e-3),
+                       (0, rotate_towards((0, 0, -1), (-1, 0, 0), 30), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    with pytest.raises(InputError, match="unreachable: needs a bend") as exc:
+        plan_path(graph, 1, tree, TrajectoryParams())
+    assert "\n" not in str(exc.value)
+    tr = plan_path(graph, 1, tree, TrajectoryParams(unreachable="nearest"))
+    check_trajectory(tr, lambda p: tree.sdf(p)[0])
+    assert not tr.target.reached and "short of the target" in tr.target.note
+    # the nearest reachable target lies on the route before the sharp bend (in the trachea here)
+    assert tr.positions[-1][2] > -3e-3
+
+
+def test_start_offset_and_kappa_override():
+    tree = chain_tree([(0, (0.4, 0, -1), 0.03, 5e-3), (0, (-0.4, 0, -1), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    tr = plan_path(graph, 1, tree, TrajectoryParams(start_offset_mm=20.0))
+    np.testing.assert_allclose(tr.positions[0], [0, 0, 0.04], atol=1e-12)
+    with pytest.raises(ConfigError, match="start_offset_mm"):
+        plan_path(graph, 1, tree, TrajectoryParams(start_offset_mm=80.0))
+    tr = plan_path(graph, 1, tree, TrajectoryParams(kappa_max=80.0))
+    check_trajectory(tr, kmax=80.0)
+    assert tr.kappa_max == 80.0
+
+
+def test_view_jitter_seeded_and_small():
+    tree = chain_tree([(0, (0.4, 0, -1), 0.03, 5e-3), (0, (-0.4, 0, -1), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    a = plan_path(graph, 1, tree, TrajectoryParams())
+    b = plan_path(graph, 1, tree, TrajectoryParams(view_jitter_deg=2.0, jitter_seed=3))
+    c = plan_path(graph, 1, tree, TrajectoryParams(view_jitter_deg=2.0, jitter_seed=3))
+    np.testing.assert_array_equal(b.poses, c.poses)
+    np.testing.assert_array_equal(a.positions, b.positions)
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ti,ti->t", a.poses[:, :3, 2], b.poses[:, :3, 2]), -1, 1)))
+    assert 0.1 < ang.max() < 10.0
+
+
+# --------------------------------------------------------------------------- targets and config
+
+
+def test_medmpd_target_file():
+    path = shared_path("airway_masks", "medmpd", "patient1", "target.txt")
+    pts = read_target_file(path)
+    assert pts.shape == (1, 3)
+    np.testing.assert_allclose(pts[0], np.loadtxt(path).reshape(3) * MM)
+    params = TrajectoryParams(targets="points", points=str(path))
+    targets = select_targets(None, params)  # type: ignore[arg-type]
+    np.testing.assert_allclose(targets[0], pts[0])
+
+
+def test_target_file_format(tmp_path):
+    f = tmp_path / "target.txt"
+    f.write_text("1.0e+01\n2.0e+01\n3.0e+01\n")
+    np.testing.assert_allclose(read_target_file(f), [[0.01, 0.02, 0.03]])
+    f.write_text("1 2\n")
+    with pytest.raises(InputError, match="triples"):
+        read_target_file(f)
+    with pytest.raises(InputError, match="not found"):
+        read_target_file(tmp_path / "missing.txt")
+
+
+def test_random_leaves_seeded(small_phantom):
+    _, graph = small_phantom
+    p = TrajectoryParams(targets="random_leaves", n=3, seed=5, max_generation=None)
+    a, b = select_targets(graph, p), select_targets(graph, p)
+    assert a == b and len(a) == 3 and len(set(a)) == 3
+    assert set(a) <= {lf.id for lf in graph.leaves()}
+    gen2 = select_targets(graph, TrajectoryParams(max_generation=2))
+    assert all(graph.branch(i).generation <= 2 for i in gen2)
+
+
+def test_params_yaml_and_validation():
+    d = yaml.safe_load((REPO / "conf" / "trajectory" / "default.yaml").read_text())
+    assert set(d) == {f.name for f in dataclasses.fields(TrajectoryParams)}
+    TrajectoryParams.from_dict(d)  # the pipeline's choices are valid (they may differ from library defaults)
+    with pytest.raises(ConfigError, match="'speed_mm'"):
+        TrajectoryParams.from_dict({"speed_mm": 3})
+    for bad in ({"targets": "all"}, {"unreachable": "skip"}, {"speed_mm_s": 0}, {"rate_hz": "10"},
+                {"targets": "points"}, {"curvature_safety": 1.5}, {"image_up": "left"}):
+        with pytest.raises(ConfigError):
+            TrajectoryParams.from_dict(bad)
+
+
+# --------------------------------------------------------------------------- invariants (hypothesis)
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(angle1=st.floats(5, 60), angle2=st.floats(5, 60), az=st.floats(0, 2 * np.pi),
+       r1=st.floats(2e-3, 5e-3), length=st.floats(0.01, 0.04), jitter=st.booleans())
+def test_invariants_random_bifurcations(angle1, angle2, az, r1, length, jitter):
+    perp = np.array([np.cos(az), np.sin(az), 0.0])
+    tree = chain_tree([(0, rotate_towards((0, 0, -1), perp, angle1), length, r1),
+                       (0, rotate_towards((0, 0, -1), -perp, angle2), length, 0.8 * r1)])
+    graph = from_airway_tree(tree, 1e-3)
+    params = TrajectoryParams(unreachable="nearest", view_jitter_deg=1.0 if jitter else 0.0)
+    for leaf in (1, 2):
+        try:
+            tr = plan_path(graph, leaf, tree, params)
+        except InputError:  # nothing reachable on the route at all: allowed, but must be one line
+            continue
+        if jitter:
+            assert tr.max_curvature <= KMAX and np.all(tr.clearance >= tr.margin)
+        else:
+            check_trajectory(tr, lambda p: tree.sdf(p)[0])
