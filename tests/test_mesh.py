@@ -13,7 +13,8 @@ from room_pipeline.anatomy.mesh import MeshParams, extract_surface, mesh_topolog
 from room_pipeline.anatomy.sdf import SdfParams, compute_sdf
 from room_pipeline.anatomy.tree import AirwayTree, Branch
 from room_pipeline.errors import ConfigError, InputError
-from room_pipeline.evaluate.surface import mesh_surface_distance, sample_surface
+from room_pipeline.evaluate.surface import mesh_surface_distance
+from room_pipeline.io.mesh import sample_surface
 from room_pipeline.io.mesh import Mesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

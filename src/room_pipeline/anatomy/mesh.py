@@ -228,7 +228,7 @@ def _surface_distance(a: Mesh, b: Mesh, n_samples: int = 200_000, seed: int = 0)
     """Distances (metres) from a's vertices and uniform samples on a's faces to surface b."""
     import open3d as o3d
 
-    from ..evaluate.surface import sample_surface
+    from ..io.mesh import sample_surface
 
     origin = b.vertices.mean(axis=0)
     area = a.area()

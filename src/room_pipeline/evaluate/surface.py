@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..anatomy.tree import AirwayTree
-from ..io.mesh import Mesh
+from ..io.mesh import Mesh, sample_surface
 from ..io.volume import Volume
 
 
@@ -55,23 +55,6 @@ def sdf_error(sdf_est: Volume, tree: AirwayTree, band: float) -> dict:
                    bias_m=float(err.mean()),
                    sign_mismatch=float(np.mean((est < 0) != (true[sel] < 0))))
     return out
-
-
-def sample_surface(mesh: Mesh, spacing: float, rng: np.random.Generator | None = None,
-                   max_points: int = 2_000_000) -> np.ndarray:
-    """Points uniformly distributed on the mesh faces, about one per ``spacing**2`` of area (metres)."""
-    rng = rng or np.random.default_rng(0)
-    v, f = mesh.vertices, mesh.faces
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    total = float(areas.sum())
-    if total <= 0:
-        return np.empty((0, 3))
-    n = int(min(max_points, max(1000, np.ceil(total / spacing ** 2))))
-    face = rng.choice(len(f), size=n, p=areas / total)
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    return (1 - s)[:, None] * a[face] + (s * (1 - r2))[:, None] * b[face] + (s * r2)[:, None] * c[face]
 
 
 def mesh_surface_distance(mesh: Mesh, tree: AirwayTree, spacing: float) -> dict:

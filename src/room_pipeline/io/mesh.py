@@ -54,6 +54,26 @@ class Mesh:
         return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
+def sample_surface(mesh: Mesh, spacing: float, rng: np.random.Generator | None = None,
+                   max_points: int = 2_000_000) -> np.ndarray:
+    """Points uniformly distributed on the mesh faces, about one per ``spacing**2`` of area (metres).
+
+    At least 1000 and at most ``max_points`` points; ``rng`` defaults to a fixed seed (deterministic).
+    """
+    rng = rng or np.random.default_rng(0)
+    v, f = mesh.vertices, mesh.faces
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    total = float(areas.sum())
+    if total <= 0:
+        return np.empty((0, 3))
+    n = int(min(max_points, max(1000, np.ceil(total / spacing ** 2))))
+    face = rng.choice(len(f), size=n, p=areas / total)
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    return (1 - s)[:, None] * a[face] + (s * (1 - r2))[:, None] * b[face] + (s * r2)[:, None] * c[face]
+
+
 def write_obj(path: str | os.PathLike, mesh: Mesh, header: str = "") -> None:
     """Wavefront OBJ, vertices in metres with 9 decimals (nanometre), written atomically."""
     buf = io.StringIO()

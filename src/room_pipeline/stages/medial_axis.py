@@ -47,18 +47,21 @@ def run(cfg: DictConfig, patient: str) -> dict:
         sdf = read_nifti_sdf(paths.sdf)
         res = extract_medial_axis(sdf, params)
     g = res.graph
+    report = dict(res.report)
+    timings = report.pop("timings", {})  # kept out of the data file: same inputs -> same bytes
     vertex, edges = graph_ply_arrays(g)
     write_ply(paths.medial_axis_ply, vertex, edges,
               comments=("room-pipeline medial axis (centreline graph points)", "units: m (x, y, z, radius)",
                         "frame: RAS+", "edges follow each branch polyline proximal -> distal"))
     doc = g.to_dict()
-    doc["metadata"] = metadata("medial_axis", patient, cfg, ("medial_axis",), report=res.report)
+    doc["metadata"] = metadata("medial_axis", patient, cfg, ("medial_axis",), report=report)
     write_json(paths.centreline_graph, doc)
     gens = [b.generation for b in g.branches]
     metrics = {"n_branches": len(g.branches), "n_leaves": len(g.leaves()),
                "max_generation": int(max(gens)) if gens else 0,
                "total_length_mm": round(sum(b.length for b in g.branches) * 1e3, 3),
                "n_medial_points": int(len(res.medial_points)),
+               **{f"time_{k}": v for k, v in timings.items()},
                "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
     write_metrics(paths, "medial_axis", metrics)
     return metrics
