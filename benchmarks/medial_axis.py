@@ -11,7 +11,8 @@ against ``from_airway_tree(phantom.tree)``.  The baselines' skeleton points
 resampling), so the table compares the centreline *points*; the baselines'
 skeleton time and builder time are reported separately.
 
-kimimaro is optional (not a project dependency): install it outside the
+kimimaro is optional (extra ``bench``: ``.venv/bin/pip install -c constraints.txt -e ".[bench]"``;
+it changes no pinned package), or install it outside the
 project venv and point PYTHONPATH at it, e.g.
 ``pip install --target /tmp/kimi_site kimimaro osteoid==0.6.0`` then
 ``PYTHONPATH=/tmp/kimi_site python benchmarks/medial_axis.py``.

@@ -1,0 +1,209 @@
+"""Benchmark of the PyBullet scope simulation (room_pipeline.robot.pybullet_sim).
+
+    .venv/bin/python benchmarks/simulation.py [--quick]
+
+Writes benchmarks/results/simulation.{json,md}:
+  1. speed vs error: n_links x time_step against the free-space tip error vs kinematics.fk
+     (from straight to full bend and two other q, settled 0.5 s) and the wall time per simulated second;
+     the largest stable time step per n_links;
+  2. contact law: penetration at 1 N and 2 N;
+  3. a 60 s sequence (phantom airway, kinematic insertion): wall time and realtime factor;
+  4. cropped vs full mesh: speed and tip pose difference;
+  5. insertion model comparison (kinematic vs passive): tracking error and contact forces;
+  6. tracking error along the default phantom trajectory (median / max, mm and deg).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "src"))
+
+from room_pipeline.anatomy.centreline import from_airway_tree  # noqa: E402
+from room_pipeline.anatomy.mesh import MeshParams, extract_surface  # noqa: E402
+from room_pipeline.anatomy.phantom import PhantomParams, grow_tree  # noqa: E402
+from room_pipeline.io.volume import Volume  # noqa: E402
+from room_pipeline.planning.trajectory import TrajectoryParams, plan_path  # noqa: E402
+from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY as G, fk  # noqa: E402
+from room_pipeline.robot.pybullet_sim import SimParams, contact_probe, settle_free, simulate  # noqa: E402
+
+MM = 1e-3
+
+
+def lumen_mesh(tree, lo, hi, h=1e-3):
+    n = np.ceil((hi - lo) / h).astype(int) + 1
+    ii = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
+    d = tree.sdf(lo + ii * h, band=4e-3)[0].reshape(n)
+    d[0], d[-1], d[:, 0], d[:, -1], d[:, :, 0], d[:, :, -1] = h, h, h, h, h, h
+    aff = np.eye(4)
+    aff[:3, :3] *= h
+    aff[:3, 3] = lo
+    return extract_surface(Volume(d.astype(np.float32), aff), MeshParams()).mesh
+
+
+def scene(target: int, start_offset_mm: float):
+    tree = grow_tree(PhantomParams(max_generation=3, lung_points=4000), np.random.default_rng(0))
+    graph = from_airway_tree(tree, 1e-3)
+    tr = plan_path(graph, target, tree, TrajectoryParams(start_offset_mm=start_offset_mm))
+    P = tr.poses[:, :3, 3]
+    P = np.vstack([P, P[0] - 0.065 * tr.poses[0, :3, 2]])
+    return tree, tr, lumen_mesh(tree, P.min(0) - 0.012, P.max(0) + 0.012)
+
+
+def rot_angle(A, B):
+    R = A[:3, :3].T @ B[:3, :3]
+    return math.acos(float(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+
+
+def speed_vs_error(quick: bool) -> list[dict]:
+    qs = [[G.q1_max, 0.3, 0.02], [-0.5 * G.q1_max, 2.0, 0.1], [0.0, 0.0, 0.3]]
+    rows = []
+    for n in (5, 10, 20):
+        for dt in (1e-3, 2e-3, 5e-3, 1e-2):
+            prm = SimParams(n_links=n, time_step_s=dt)
+            steps = int(round(0.5 / dt))
+            ep, ea, wall = [], [], 0.0
+            for q in qs:
+                t0 = time.perf_counter()
+                T = settle_free(q, prm, G, steps=steps)
+                wall += time.perf_counter() - t0
+                F = fk(np.array(q, float), geometry=G)
+                ep.append(float(np.linalg.norm(T[:3, 3] - F[:3, 3])) / MM)
+                ea.append(math.degrees(rot_angle(T, F)))
+            stable = bool(np.all(np.isfinite(ep)) and max(ep) < 1.0)
+            rows.append({"n_links": n, "time_step_s": dt, "tip_error_mm_max": max(ep), "tip_error_deg_max": max(ea),
+                         "stable": stable, "wall_s_per_sim_s_free": wall / (0.5 * len(qs))})
+            print(rows[-1], flush=True)
+    return rows
+
+
+def main() -> None:
+    quick = "--quick" in sys.argv
+    out: dict = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
+                             "loadavg_start": os.getloadavg()}, "defaults": SimParams().to_dict()}
+    out["speed_vs_error"] = speed_vs_error(quick)
+    out["contact_law"] = [{"force_n": f, "penetration_mm": contact_probe(SimParams(), f)[0] / MM}
+                          for f in (0.5, 1.0, 2.0, 4.0)]
+    print(out["contact_law"], flush=True)
+
+    # default phantom trajectory: trachea (90 mm down) into branch 3 (tight: 5.05 mm lumen radius)
+    tree, tr, mesh = scene(3, 70.0)
+
+    def run(params, m=mesh, traj=tr):
+        r = simulate(traj, m, params, G)
+        rep = dict(r.report)
+        rep["tip_sdf_max_mm"] = float(tree.sdf(r.tip_poses[:, :3, 3])[0].max() / MM)
+        return r, rep
+
+    r_def, rep_def = run(SimParams())
+    out["tracking_default"] = rep_def
+    print("default", json.dumps(rep_def), flush=True)
+
+    # a 60 s sequence: target branch 9 (lumen radius 4.3 mm) from 60 mm down the trachea, padded to 60 s.
+    # (branch 7, radius 3.4 mm, leaves 0.9 mm around the 5 mm scope: the kinematic shaft jams it through the
+    # wall near the end -- see the report; the planner does not account for the scope diameter)
+    tree7, tr7, mesh7 = scene(9, 60.0)
+    n60 = int(round(60.0 * tr7.rate_hz)) + 1
+    if len(tr7.timestamps) < n60:                       # hold the last pose to reach 60 s
+        k = n60 - len(tr7.timestamps)
+        tr7 = dataclasses.replace(
+            tr7, timestamps=np.arange(n60) / tr7.rate_hz,
+            poses=np.concatenate([tr7.poses, np.repeat(tr7.poses[-1:], k, 0)]),
+            arclength=np.concatenate([tr7.arclength, np.repeat(tr7.arclength[-1:], k)]))
+    r60 = simulate(tr7, mesh7, SimParams(), G)
+    out["sequence_60s"] = {"trajectory_duration_s": float(tr7.duration), "wall_time_s": r60.report["wall_time_s"],
+                           "realtime_factor": r60.report["realtime_factor"], "steps": r60.report["steps"],
+                           "tracking_error_mm": r60.report["tracking_error_mm"],
+                           "tracking_error_deg": r60.report["tracking_error_deg"],
+                           "tip_sdf_max_mm": float(tree7.sdf(r60.tip_poses[:, :3, 3])[0].max() / MM),
+                           "loadavg": os.getloadavg()}
+    print("60 s", json.dumps(out["sequence_60s"]), flush=True)
+
+    # crop vs full mesh
+    r_full, rep_full = run(SimParams(crop_mesh=False))
+    dp = np.linalg.norm(r_full.tip_poses[:, :3, 3] - r_def.tip_poses[:, :3, 3], axis=1) / MM
+    da = np.degrees([rot_angle(a, b) for a, b in zip(r_full.tip_poses, r_def.tip_poses)])
+    out["crop_vs_full"] = {"faces_full": mesh.n_faces, "faces_cropped_mean": rep_def["mesh"]["faces_loaded_mean"],
+                           "crop_builds": rep_def["mesh"]["builds"],
+                           "wall_s_cropped": rep_def["wall_time_s"], "wall_s_full": rep_full["wall_time_s"],
+                           "tip_position_diff_mm_max": float(dp.max()), "tip_angle_diff_deg_max": float(da.max()),
+                           "identical": bool(r_full.tip_poses.tobytes() == r_def.tip_poses.tobytes())}
+    print("crop", json.dumps(out["crop_vs_full"]), flush=True)
+
+    # insertion models, without actuation noise (isolates the shaft model) and with it
+    ins = []
+    for model in ("kinematic", "passive"):
+        for act in (False, True):
+            r, rep = run(SimParams(insertion_model=model, actuation=act))
+            ins.append({"insertion_model": model, "actuation": act, "tracking_error_mm": rep["tracking_error_mm"],
+                        "tracking_error_deg": rep["tracking_error_deg"], "contact_force_n": rep["contact_force_n"],
+                        "penetration_mm": rep["penetration_mm"], "wall_time_s": rep["wall_time_s"],
+                        "tip_sdf_max_mm": rep["tip_sdf_max_mm"]})
+            print("insertion", json.dumps(ins[-1]), flush=True)
+    out["insertion_models"] = ins
+
+    # IK direction weight trade-off (position vs view direction), no actuation noise
+    iw = []
+    for w in (None, 20.0, 5.0):
+        r, rep = run(SimParams(actuation=False, ik_direction_weight_mm=w))
+        iw.append({"ik_direction_weight_mm": w, "tracking_error_mm": rep["tracking_error_mm"],
+                   "tracking_error_deg": rep["tracking_error_deg"]})
+    out["ik_direction_weight"] = iw
+    out["machine"]["loadavg_end"] = os.getloadavg()
+
+    res = ROOT / "benchmarks" / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    (res / "simulation.json").write_text(json.dumps(out, indent=1))
+    md = ["# Scope simulation benchmark (benchmarks/simulation.py)", "",
+          f"2 shared CPU cores, load average {out['machine']['loadavg_start'][0]:.1f} at start, "
+          f"{out['machine']['loadavg_end'][0]:.1f} at end (timings are noisy).", "",
+          "## Speed vs error (free space, from straight, settled 0.5 s; worst of 3 q incl. full bend)", "",
+          "| n_links | dt (s) | tip error (mm) | angle (deg) | stable | wall s per sim s (free) |", "|---|---|---|---|---|---|"]
+    for r in out["speed_vs_error"]:
+        md.append(f"| {r['n_links']} | {r['time_step_s']:g} | {r['tip_error_mm_max']:.3f} | {r['tip_error_deg_max']:.3f} "
+                  f"| {r['stable']} | {r['wall_s_per_sim_s_free']:.3f} |")
+    md += ["", "## Contact law (one scope link on a static box)", "", "| force (N) | penetration (mm) |", "|---|---|"]
+    md += [f"| {c['force_n']} | {c['penetration_mm']:.3f} |" for c in out["contact_law"]]
+    s60 = out["sequence_60s"]
+    md += ["", "## 60 s sequence (phantom, branch 9, defaults)", "",
+           f"wall {s60['wall_time_s']:.1f} s, realtime x{s60['realtime_factor']:.1f}, {s60['steps']} steps; tracking "
+           f"median {s60['tracking_error_mm']['median']:.2f} mm / max {s60['tracking_error_mm']['max']:.2f} mm",
+           "", "## Crop vs full mesh (phantom, branch 3)", ""]
+    cv = out["crop_vs_full"]
+    md += [f"faces {cv['faces_full']} full vs {cv['faces_cropped_mean']:.0f} cropped ({cv['crop_builds']} builds); "
+           f"wall {cv['wall_s_full']:.2f} s full vs {cv['wall_s_cropped']:.2f} s cropped; tip difference max "
+           f"{cv['tip_position_diff_mm_max']:.2e} mm, {cv['tip_angle_diff_deg_max']:.2e} deg; identical: {cv['identical']}",
+           "", "## Insertion models (phantom, branch 3)", "",
+           "| model | actuation | median mm | max mm | median deg | max force N | mean force N | max pen mm |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in ins:
+        md.append(f"| {r['insertion_model']} | {r['actuation']} | {r['tracking_error_mm']['median']:.2f} | "
+                  f"{r['tracking_error_mm']['max']:.2f} | {r['tracking_error_deg']['median']:.1f} | "
+                  f"{r['contact_force_n']['max']:.3f} | {r['contact_force_n']['mean']:.4f} | "
+                  f"{r['penetration_mm']['max']:.3f} |")
+    md += ["", "## IK view-direction weight (no actuation noise)", "", "| weight mm | median mm | max mm | median deg | max deg |",
+           "|---|---|---|---|---|"]
+    for r in iw:
+        md.append(f"| {r['ik_direction_weight_mm']} | {r['tracking_error_mm']['median']:.2f} | "
+                  f"{r['tracking_error_mm']['max']:.2f} | {r['tracking_error_deg']['median']:.1f} | "
+                  f"{r['tracking_error_deg']['max']:.1f} |")
+    d = out["tracking_default"]
+    md += ["", "## Tracking along the default phantom trajectory (defaults)", "",
+           f"median {d['tracking_error_mm']['median']:.2f} mm, max {d['tracking_error_mm']['max']:.2f} mm; "
+           f"median {d['tracking_error_deg']['median']:.1f} deg, max {d['tracking_error_deg']['max']:.1f} deg; "
+           f"realtime x{d['realtime_factor']:.1f}", ""]
+    (res / "simulation.md").write_text("\n".join(md))
+    print("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,69 @@
+"""IK-based tracking controller for the simulated scope (pure numpy).
+
+At every frame the controller gets the next waypoint (a camera-to-world pose of the
+planned trajectory) and a function giving the world pose of the **bending-segment
+base** as a function of the insertion ``q3`` (roll excluded: its z axis is the
+insertion direction, q2 = 0).  The robot base frame of
+:mod:`room_pipeline.robot.kinematics` is that pose shifted back by ``q3`` along its z,
+so ``fk(q)`` is the tip relative to it.  :func:`room_pipeline.robot.kinematics.ik`
+(tip position and view direction) is solved in that frame; because the shaft follows a
+curved route, the base frame moves with ``q3``: the solve is repeated with the base
+frame at the new ``q3`` until ``q3`` changes by less than ``q3_tol_m`` (a fixed point,
+2-3 iterations).  The joint command is clamped to the joint limits by ``ik``.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .kinematics import ScopeGeometry, ik
+
+BaseFrameFn = Callable[[float], np.ndarray]
+
+
+def _shift(base_pose: np.ndarray, q3: float) -> np.ndarray:
+    """Robot base frame: the bending-segment base pose moved back by q3 along its own z."""
+    W = base_pose.copy()
+    W[:3, 3] = base_pose[:3, 3] - q3 * base_pose[:3, 2]
+    return W
+
+
+class IKController:
+    """Tracks camera-to-world waypoints with insertion, rotation and bending.
+
+    Args:
+        geometry: scope geometry (bending-segment length, limits).
+        direction_weight_m: weight of the view-direction residual in ``ik`` (m; None: ``l``).
+        iterations: fixed-point iterations on the base frame.
+        q3_tol_m: stop when the insertion changes by less than this.
+    """
+
+    def __init__(self, geometry: ScopeGeometry, direction_weight_m: float | None = None,
+                 iterations: int = 4, q3_tol_m: float = 1e-7) -> None:
+        self.geometry = geometry
+        self.direction_weight_m = direction_weight_m
+        self.iterations = int(iterations)
+        self.q3_tol_m = float(q3_tol_m)
+
+    def command(self, target_pose: np.ndarray, q_ref: np.ndarray, base_frame: BaseFrameFn) -> np.ndarray:
+        """Joint command ``[q1, q2, q3]`` putting the tip camera on ``target_pose`` (4x4, world).
+
+        ``q_ref``: the current command (branch and q2 continuity); ``base_frame(q3)``: world pose
+        (4x4) of the bending-segment base at insertion ``q3``, roll 0.
+        """
+        q = np.asarray(q_ref, dtype=float).copy()
+        p_w = target_pose[:3, 3]
+        d_w = target_pose[:3, 2]
+        for _ in range(max(1, self.iterations)):
+            W = _shift(base_frame(q[2]), q[2])
+            R, t = W[:3, :3], W[:3, 3]
+            p = R.T @ (p_w - t)
+            d = R.T @ d_w
+            res = ik(p, d, q0=q, geometry=self.geometry, direction_weight_m=self.direction_weight_m,
+                     position_tol_m=1e-6, direction_tol_rad=1e-4, max_iter=50)
+            dq3 = abs(res.q[2] - q[2])
+            q = res.q.copy()
+            if dq3 < self.q3_tol_m:
+                break
+        return q

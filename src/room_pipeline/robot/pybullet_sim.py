@@ -1,0 +1,811 @@
+"""Physics simulation of the ROOM scope in the airway (PyBullet, DIRECT mode).
+
+The only module of room-pipeline that imports :mod:`pybullet`.
+
+Scope model
+    The bending segment (length ``geometry.l``) is a chain of ``n_links`` rigid capsules
+    (diameter ``scope_diameter_mm``; default 5.0 mm, the Ambu aScope 4 Regular) joined at
+    the polygon vertices ``s_i = i l / n`` by **two revolute joints** (about the link's x,
+    the bending axis, and y, out of plane).  The chain's base is the bending-segment base,
+    rolled by ``q2`` (the whole scope rotates), so the nominal constant-curvature shape of
+    :mod:`~room_pipeline.robot.kinematics` is ``theta_x = kappa(q1) l / n`` at every inner
+    vertex and ``kappa l / (2 n)`` at the base (the polygon's vertices then lie on the arc;
+    its chords are ``l/n`` long, a relative length error ``(kappa l/n)^2 / 24``), ``theta_y = 0``.
+    The tip camera sits at the last vertex; its view direction is the last chord turned by
+    half the last vertex's actual joint angles (the discrete tangent there).
+    Every joint is a spring-damper about its target, applied as an explicit torque each
+    step (default motors off: velocity control with force 0):
+    ``tau = joint_stiffness (theta* - theta) - joint_damping dtheta/dt``.
+
+Units and stability
+    SI (metres, kg, s).  The scope's true link inertia (~1e-9 kg m^2) with the joint damping
+    (5e-4 N m s/rad) would need a time step below ~5 us for the explicit damping torque to be
+    stable.  The motion is quasi-static (mm/s, time constant ``damping/stiffness`` = 25 ms),
+    so the links' **rotational inertia is raised** to ``inertia_factor * damping *
+    time_step_s`` (about each axis; mass scaling, the standard trick for quasi-static
+    rod simulations): with the default factor 4 the explicit spring-damper is stable
+    (``dt * damping / I = 1/4``) and the joint equilibrium -- what the output records --
+    does not depend on inertia.  Gravity is off by default (``gravity_m_s2: 0``: the scope's
+    weight, ~0.3 g per bending segment, is carried by the handle and the airway; the
+    kinematic model has none).
+
+Contact
+    Soft normal contact ``f = k_n delta + c_n d(delta)/dt`` via
+    ``changeDynamics(contactStiffness=k_n, contactDamping=c_n)`` **on the scope's links only**
+    (set on both bodies the two springs act in series and the penetration doubles).
+    Coulomb friction: Bullet has one coefficient per pair, the *product* of the two bodies'
+    ``lateralFriction``; the wall carries 1.0 and each scope link ``mu``.  With
+    ``friction_model: switch`` a link's ``mu`` is ``mu_s`` while its speed is below
+    ``slip_speed_mm_s`` and ``mu_d`` while it slides (re-evaluated every frame); with
+    ``dynamic`` it is always ``mu_d`` (slightly more slip than the static law allows).
+
+Airway
+    A static concave triangle mesh (``GEOM_MESH`` with ``GEOM_FORCE_CONCAVE_TRIMESH``) of the
+    lumen surface; the scope is inside it (triangle contacts are two-sided, so the wall
+    pushes the scope back into the lumen).  With ``crop_mesh`` only the triangles whose
+    centroid is within ``crop_radius_mm`` of the scope are loaded, and the crop is rebuilt
+    when any scope point has moved more than ``crop_rebuild_mm`` since the last build.
+
+Insertion (``insertion_model``)
+    ``kinematic``: the proximal shaft is constrained to the planned route: the
+    bending-segment base moves kinematically along the trajectory's path at arclength
+    ``q3`` (extended straight before its start and after its end), its frame the path's
+    rotation-minimising frame rolled by ``q2``.  ``passive``: only the route point at
+    ``q3 - passive_shaft_length_mm`` is kinematic; the last ``passive_shaft_length_mm`` of
+    the shaft is a chain of stiffer passive links (bending stiffness
+    ``shaft_bending_stiffness_nm2``, straight at rest) that follows the lumen through contact.
+
+Time stepping per 10 Hz frame
+    The controller (:mod:`~room_pipeline.robot.controller`) computes, at frame ``k-1``, the
+    command for waypoint ``k``; the command ramps linearly to it over the frame; the
+    actuator (:mod:`~room_pipeline.robot.actuation`) delays it and applies its gain; every
+    physics step sets the base pose and the joint targets from the actual ``q``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any, Mapping
+
+import numpy as np
+import pybullet as p
+from scipy.spatial import cKDTree
+
+from ..errors import ConfigError, InputError
+from ..io.mesh import Mesh
+from .actuation import Actuator, CommandSignal, sample_delay
+from .controller import IKController
+from .kinematics import ScopeGeometry, kappa
+
+INSERTION_MODELS = ("kinematic", "passive")
+FRICTION_MODELS = ("switch", "dynamic")
+
+
+# --------------------------------------------------------------------------- parameters
+
+
+@dataclasses.dataclass
+class SimParams:
+    """Knobs of the simulation; field names are the keys of ``conf/simulate/default.yaml``."""
+
+    seed: int = 0                           # actuation delay RNG seed
+    time_step_s: float = 5e-3               # physics step (largest stable at n_links 10: benchmarks/simulation.py)
+    solver_iterations: int = 50             # Bullet constraint-solver iterations per step
+    n_links: int = 10                       # capsules in the bending segment
+    scope_diameter_mm: float = 5.0          # outer diameter (Ambu aScope 4 Regular: 5.0 mm)
+    linear_density_kg_m: float = 0.03       # scope mass per length
+    joint_integration: str = "implicit"     # implicit (stable PD) | explicit spring-damper torques
+    inertia_factor: float = 0.0             # explicit: link rotational inertia >= factor * joint_damping * time_step_s
+    joint_stiffness: float = 2.0e-2         # N m/rad, bending-segment joints
+    joint_damping: float = 5.0e-4           # N m s/rad
+    contact_stiffness: float = 4.0e3        # k_n, N/m (on the scope only)
+    contact_damping: float = 0.8            # c_n, N s/m
+    friction_static: float = 0.3            # mu_s
+    friction_dynamic: float = 0.25          # mu_d
+    friction_model: str = "switch"          # switch | dynamic
+    slip_speed_mm_s: float = 0.5            # switch: a link faster than this slides (mu_d)
+    gravity_m_s2: float = 0.0               # along world -z (RAS+ inferior); 0: off
+    actuation: bool = True                  # apply the actuation non-idealities
+    delay_max_s: float = 0.1                # command delay ~ U(0, delay_max_s), one draw per sequence
+    gain_q1: float = 0.05                   # q1 gain error at |q1| = q1_max
+    gain_q2: float = 0.05                   # q2 gain error at |q2| = 2 pi
+    insertion_model: str = "kinematic"      # kinematic | passive
+    passive_shaft_length_mm: float = 40.0   # passive: free shaft length behind the bending segment
+    passive_shaft_links: int = 8
+    shaft_bending_stiffness_nm2: float = 2.0e-3  # passive shaft EI, N m^2 (joint k = EI / link length)
+    crop_mesh: bool = True                  # load only the triangles near the scope
+    crop_radius_mm: float = 12.0
+    crop_rebuild_mm: float = 3.0
+    settle_time_s: float = 0.3              # settling before the first frame
+    ik_direction_weight_mm: float | None = None  # weight of the view direction in IK (null: l)
+    controller_iterations: int = 4
+
+    def __post_init__(self) -> None:
+        ints = ("seed", "solver_iterations", "n_links", "passive_shaft_links", "controller_iterations")
+        for name in ints:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or float(v) != int(v):
+                raise ConfigError(f"simulate.{name} must be an integer, got {v!r}")
+            setattr(self, name, int(v))
+        for name, f in self.__dataclass_fields__.items():
+            if name in ints or f.type in ("str", "bool") or name == "ik_direction_weight_mm":
+                continue
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ConfigError(f"simulate.{name} must be a finite number, got {v!r}")
+            setattr(self, name, float(v))
+        if self.ik_direction_weight_mm is not None:
+            v = self.ik_direction_weight_mm
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"simulate.ik_direction_weight_mm must be >= 0 or null, got {v!r}")
+        for name in ("actuation", "crop_mesh"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"simulate.{name} must be true or false, got {getattr(self, name)!r}")
+        if self.insertion_model not in INSERTION_MODELS:
+            raise ConfigError(f"simulate.insertion_model must be one of {', '.join(INSERTION_MODELS)}, "
+                              f"got {self.insertion_model!r}")
+        if self.joint_integration not in ("implicit", "explicit"):
+            raise ConfigError(f"simulate.joint_integration must be implicit or explicit, got {self.joint_integration!r}")
+        if self.friction_model not in FRICTION_MODELS:
+            raise ConfigError(f"simulate.friction_model must be one of {', '.join(FRICTION_MODELS)}, "
+                              f"got {self.friction_model!r}")
+        positive = ("time_step_s", "solver_iterations", "scope_diameter_mm", "linear_density_kg_m",
+                    "joint_stiffness", "joint_damping", "contact_stiffness", "passive_shaft_length_mm",
+                    "passive_shaft_links", "shaft_bending_stiffness_nm2", "crop_radius_mm", "crop_rebuild_mm",
+                    "controller_iterations")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"simulate.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("inertia_factor", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
+                     "delay_max_s", "gain_q1", "gain_q2", "settle_time_s"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"simulate.{name} must be >= 0, got {getattr(self, name)}")
+        if self.n_links < 2:
+            raise ConfigError(f"simulate.n_links must be >= 2, got {self.n_links}")
+        if self.friction_dynamic > self.friction_static:
+            raise ConfigError(f"simulate.friction_dynamic ({self.friction_dynamic}) must be <= friction_static "
+                              f"({self.friction_static})")
+        if self.time_step_s > 0.05:
+            raise ConfigError(f"simulate.time_step_s must be <= 0.05 s, got {self.time_step_s}")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> "SimParams":
+        """Build from a config section; an unknown key raises :class:`ConfigError` naming it."""
+        d = dict(d or {})
+        known = [f.name for f in dataclasses.fields(cls)]
+        for key in d:
+            if key not in known:
+                raise ConfigError(f"simulate: unknown config key '{key}' (known: {', '.join(known)})")
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def robot_config(params: SimParams, geometry: ScopeGeometry) -> dict:
+    """Model parameters for ``sequence_YYY/metadata/robot_config.json`` (SI units)."""
+    dt = params.time_step_s
+    return {
+        "description": "ROOM continuum bronchoscope: 3-DoF constant-curvature kinematics and the PyBullet "
+                       "multibody used to simulate it",
+        "units": {"length": "m", "angle": "rad", "time": "s", "mass": "kg", "force": "N"},
+        "kinematics": {"model": "constant curvature, kappa = -q1 / (2 gamma l); r(0) = [0, 0, q3], R(0) = Rot_z(q2)",
+                       "bending_length": geometry.l, "gamma": geometry.gamma, "q1_max": geometry.q1_max,
+                       "kappa_max": geometry.kappa_max, "theta_max": geometry.theta_max,
+                       "joints": ["q1 tendon differential (m)", "q2 axial rotation (rad)", "q3 insertion (m)"]},
+        "scope": {"outer_diameter": params.scope_diameter_mm * 1e-3, "n_links": params.n_links,
+                  "link_length": geometry.l / params.n_links, "linear_density": params.linear_density_kg_m,
+                  "joints_per_vertex": "2 revolute (bending axis x, out-of-plane y)",
+                  "joint_stiffness": params.joint_stiffness, "joint_damping": params.joint_damping,
+                  "link_rotational_inertia": params.inertia_factor * params.joint_damping * dt,
+                  "camera": "at the tip vertex; view direction = last chord turned by half the last joint angles"},
+        "contact": {"normal_law": "f = max(0, k_n delta + c_n d delta/dt), on the scope only",
+                    "k_n": params.contact_stiffness, "c_n": params.contact_damping,
+                    "mu_s": params.friction_static, "mu_d": params.friction_dynamic,
+                    "friction_model": params.friction_model, "slip_speed": params.slip_speed_mm_s * 1e-3},
+        "actuation": {"enabled": params.actuation, "delay": f"U(0, {params.delay_max_s}) s, one draw per sequence",
+                      "q1": f"q1cmd(t - dt) (1 + {params.gain_q1} |q1cmd| / q1_max)",
+                      "q2": f"q2cmd(t - dt) (1 + {params.gain_q2} |q2cmd| / 2 pi)", "q3": "q3cmd(t - dt)",
+                      "seed": params.seed},
+        "insertion_model": params.insertion_model,
+        "passive_shaft": ({"length": params.passive_shaft_length_mm * 1e-3, "links": params.passive_shaft_links,
+                           "bending_stiffness": params.shaft_bending_stiffness_nm2}
+                          if params.insertion_model == "passive" else None),
+        "simulator": {"engine": "pybullet", "version": p.getAPIVersion(), "mode": "DIRECT", "time_step": dt,
+                      "solver_iterations": params.solver_iterations, "gravity": params.gravity_m_s2,
+                      "mesh_crop": ({"radius": params.crop_radius_mm * 1e-3, "rebuild": params.crop_rebuild_mm * 1e-3}
+                                    if params.crop_mesh else None)},
+    }
+
+
+# --------------------------------------------------------------------------- small geometry helpers
+
+
+def _rx(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _ry(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _quat_to_mat(qt) -> np.ndarray:
+    return np.array(p.getMatrixFromQuaternion(qt)).reshape(3, 3)
+
+
+def _mat_to_quat(R: np.ndarray):
+    # Shepperd's method (x, y, z, w), deterministic
+    m = R
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        return ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s)
+    if m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        return (0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s)
+    if m[1, 1] > m[2, 2]:
+        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        return ((m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s)
+    s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+    return ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s)
+
+
+class Route:
+    """The path the shaft follows: a trajectory's positions with tangent frames, by arclength.
+
+    ``frame(s)``: 4x4 world pose at arclength ``s`` (m, 0 at the first pose): z = path tangent,
+    x/y = the trajectory's rotation-minimising frame made orthogonal to it; extended straight
+    (constant frame) before the start and after the end.
+    """
+
+    def __init__(self, positions: np.ndarray, arclength: np.ndarray, rotations: np.ndarray) -> None:
+        s, idx = np.unique(np.asarray(arclength, float), return_index=True)
+        P = np.asarray(positions, float)[idx]
+        R = np.asarray(rotations, float)[idx]
+        if len(s) < 2:
+            raise InputError("the trajectory needs at least two distinct positions to simulate")
+        t = np.gradient(P, s, axis=0) if len(s) > 2 else np.repeat((P[1:] - P[:1]) / (s[1] - s[0]), 2, axis=0)
+        t /= np.linalg.norm(t, axis=1, keepdims=True)
+        x = R[:, :, 0] - np.einsum("ij,ij->i", R[:, :, 0], t)[:, None] * t
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        self.s, self.P, self.t, self.x = s, P, t, x
+
+    @classmethod
+    def from_trajectory(cls, trajectory) -> "Route":
+        return cls(trajectory.poses[:, :3, 3], trajectory.arclength, trajectory.poses[:, :3, :3])
+
+    def frame(self, s: float) -> np.ndarray:
+        S = self.s
+        if s <= S[0]:
+            P, t, x = self.P[0] + (s - S[0]) * self.t[0], self.t[0], self.x[0]
+        elif s >= S[-1]:
+            P, t, x = self.P[-1] + (s - S[-1]) * self.t[-1], self.t[-1], self.x[-1]
+        else:
+            i = int(np.searchsorted(S, s, side="right")) - 1
+            w = (s - S[i]) / (S[i + 1] - S[i])
+            P = (1 - w) * self.P[i] + w * self.P[i + 1]
+            t = (1 - w) * self.t[i] + w * self.t[i + 1]
+            t = t / np.linalg.norm(t)
+            x = (1 - w) * self.x[i] + w * self.x[i + 1]
+        x = x - (x @ t) * t
+        x = x / np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, 0] = x
+        T[:3, 1] = np.cross(t, x)
+        T[:3, 2] = t
+        T[:3, 3] = P
+        return T
+
+
+def crop_faces(mesh: Mesh, points: np.ndarray, radius: float, tree: cKDTree | None = None) -> np.ndarray:
+    """Sorted indices of the faces whose centroid is within ``radius`` of any of ``points``."""
+    if tree is None:
+        tree = cKDTree(mesh.vertices[mesh.faces].mean(axis=1))
+    hits = tree.query_ball_point(np.asarray(points, float).reshape(-1, 3), radius)
+    if len(hits) == 0:
+        return np.zeros(0, dtype=np.int64)
+    idx = np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]))
+    return idx
+
+
+# --------------------------------------------------------------------------- the PyBullet world
+
+
+class ScopeSim:
+    """One PyBullet DIRECT world: the scope multibody and (optionally) the airway mesh.
+
+    Args:
+        params, geometry: the model.
+        n_shaft: passive shaft links behind the bending segment (0: none, the kinematic model).
+        shaft_length: their total length, m.
+    """
+
+    def __init__(self, params: SimParams, geometry: ScopeGeometry, n_shaft: int = 0, shaft_length: float = 0.0) -> None:
+        self.params, self.geometry = params, geometry
+        self.cid = p.connect(p.DIRECT)
+        c = self.cid
+        p.resetSimulation(physicsClientId=c)
+        p.setPhysicsEngineParameter(fixedTimeStep=params.time_step_s, numSolverIterations=params.solver_iterations,
+                                    numSubSteps=0, deterministicOverlappingPairs=1, physicsClientId=c)
+        p.setGravity(0.0, 0.0, -params.gravity_m_s2, physicsClientId=c)
+        self.radius = 0.5 * params.scope_diameter_mm * 1e-3
+        self.n_shaft, self.n_bend = int(n_shaft), params.n_links
+        self.ds = geometry.l / params.n_links
+        self.ds_shaft = shaft_length / n_shaft if n_shaft else 0.0
+        self.wall = -1
+        self.wall_shape = -1
+        self.wall_faces = 0
+        self._build_scope()
+
+    # ---- construction
+    def _build_scope(self) -> None:
+        c, prm = self.cid, self.params
+        lengths = [self.ds_shaft] * self.n_shaft + [self.ds] * self.n_bend
+        masses, shapes, positions, parents, axes, inertias, ipos, k, d = [], [], [], [], [], [], [], [], []
+        I_art = prm.inertia_factor * prm.joint_damping * prm.time_step_s
+        k_shaft = prm.shaft_bending_stiffness_nm2 / self.ds_shaft if self.n_shaft else 0.0
+        d_shaft = k_shaft * prm.joint_damping / prm.joint_stiffness
+        I_shaft = prm.inertia_factor * d_shaft * prm.time_step_s
+        prev_len = 0.0
+        for i, L in enumerate(lengths):
+            shaft = i < self.n_shaft
+            m = prm.linear_density_kg_m * L
+            I_phys = m * (3 * self.radius ** 2 + L ** 2) / 12.0
+            I = max(I_phys, I_shaft if shaft else I_art)
+            shape = p.createCollisionShape(p.GEOM_CAPSULE, radius=self.radius, height=L,
+                                           collisionFramePosition=[0.0, 0.0, 0.5 * L], physicsClientId=c)
+            # dummy link carrying the x joint at the vertex, then the capsule on the y joint
+            masses += [1e-3 * m, m]
+            shapes += [-1, shape]
+            positions += [[0.0, 0.0, prev_len], [0.0, 0.0, 0.0]]
+            parents += [2 * i if i > 0 else 0, 2 * i + 1]
+            axes += [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+            inertias += [[1e-3 * I] * 3, [I] * 3]
+            ipos += [[0.0, 0.0, 0.0], [0.0, 0.0, 0.5 * L]]
+            kk, dd = (k_shaft, d_shaft) if shaft else (prm.joint_stiffness, prm.joint_damping)
+            k += [kk, kk]
+            d += [dd, dd]
+            prev_len = L
+        n = len(masses)
+        self.body = p.createMultiBody(
+            baseMass=0.0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=-1,
+            basePosition=[0.0, 0.0, 0.0], baseOrientation=[0.0, 0.0, 0.0, 1.0],
+            linkMasses=masses, linkCollisionShapeIndices=shapes, linkVisualShapeIndices=[-1] * n,
+            linkPositions=positions, linkOrientations=[[0.0, 0.0, 0.0, 1.0]] * n,
+            linkInertialFramePositions=ipos, linkInertialFrameOrientations=[[0.0, 0.0, 0.0, 1.0]] * n,
+            linkParentIndices=parents, linkJointTypes=[p.JOINT_REVOLUTE] * n, linkJointAxis=axes,
+            physicsClientId=c)
+        self.joints = list(range(n))
+        self.capsules = list(range(1, n, 2))
+        self.k = np.array(k)
+        self.d = np.array(d)
+        for j in self.joints:
+            p.changeDynamics(self.body, j, localInertiaDiagonal=inertias[j], linearDamping=0.0, angularDamping=0.0,
+                             jointDamping=0.0, physicsClientId=c)
+        for j in self.capsules:
+            p.changeDynamics(self.body, j, contactStiffness=prm.contact_stiffness, contactDamping=prm.contact_damping,
+                             lateralFriction=prm.friction_dynamic if prm.friction_model == "dynamic"
+                             else prm.friction_static, restitution=0.0, physicsClientId=c)
+        self._mu = np.full(len(self.capsules), -1.0)
+        p.setJointMotorControlArray(self.body, self.joints, p.VELOCITY_CONTROL, forces=[0.0] * n, physicsClientId=c)
+        self.targets = np.zeros(n)
+        self.base_pose = np.eye(4)
+        self.implicit = prm.joint_integration == "implicit"
+        self.dt = prm.time_step_s
+
+    def close(self) -> None:
+        if self.cid is not None and self.cid >= 0:
+            p.disconnect(physicsClientId=self.cid)
+            self.cid = -1
+
+    def __del__(self) -> None:  # pragma: no cover - best effort
+        try:
+            if getattr(self, "cid", -1) >= 0 and p.isConnected(self.cid):
+                p.disconnect(physicsClientId=self.cid)
+        except Exception:
+            pass
+
+    # ---- airway
+    def set_wall(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        """Replace the static airway mesh (concave triangle mesh, two-sided contacts)."""
+        c = self.cid
+        if self.wall >= 0:
+            p.removeBody(self.wall, physicsClientId=c)
+            self.wall = -1
+        self.wall_shape = -1   # (Bullet refuses to remove a shape still referenced; it is freed with the world)
+        self.wall_faces = int(len(faces))
+        if len(faces) == 0:
+            return
+        self.wall_shape = p.createCollisionShape(p.GEOM_MESH, vertices=np.asarray(vertices, float).tolist(),
+                                                 indices=np.asarray(faces, np.int64).ravel().tolist(),
+                                                 flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
+        self.wall = p.createMultiBody(0.0, self.wall_shape, -1, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
+        p.changeDynamics(self.wall, -1, lateralFriction=1.0, restitution=0.0, physicsClientId=c)
+
+    def add_box(self, half_extents, position) -> int:
+        """A static box (contact-law checks); friction 1.0 so the pair's coefficient is the scope's."""
+        c = self.cid
+        shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=list(half_extents), physicsClientId=c)
+        b = p.createMultiBody(0.0, shape, -1, list(position), [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
+        p.changeDynamics(b, -1, lateralFriction=1.0, restitution=0.0, physicsClientId=c)
+        self.wall = b
+        return b
+
+    # ---- state
+    def set_base(self, pose: np.ndarray) -> None:
+        self.base_pose = pose
+        p.resetBasePositionAndOrientation(self.body, pose[:3, 3].tolist(), _mat_to_quat(pose[:3, :3]),
+                                          physicsClientId=self.cid)
+
+    def set_bend(self, q1: float) -> None:
+        """Joint targets of the bending segment for tendon differential ``q1`` (in its rolled base)."""
+        phi = float(kappa(q1, self.geometry)) * self.ds
+        t = np.zeros(len(self.joints))
+        first = 2 * self.n_shaft
+        t[first] = 0.5 * phi
+        t[first + 2::2] = phi
+        self.targets = t
+
+    def reset_joints(self) -> None:
+        """Joints at their targets, at rest."""
+        for j in self.joints:
+            p.resetJointState(self.body, j, float(self.targets[j]), 0.0, physicsClientId=self.cid)
+
+    def joint_state(self) -> tuple[np.ndarray, np.ndarray]:
+        js = p.getJointStates(self.body, self.joints, physicsClientId=self.cid)
+        return np.array([j[0] for j in js]), np.array([j[1] for j in js])
+
+    def step(self, n: int = 1) -> None:
+        c, body, joints = self.cid, self.body, self.joints
+        for _ in range(n):
+            js = p.getJointStates(body, joints, physicsClientId=c)
+            th = np.fromiter((j[0] for j in js), float, len(joints))
+            om = np.fromiter((j[1] for j in js), float, len(joints))
+            if self.implicit:
+                # stable PD (Tan, Liu & Turk 2011): spring at theta + dt*omega, damper at the predicted
+                # velocity omega + dt*acc, acc from the joint-space mass matrix (bias and contact ignored)
+                M = np.array(p.calculateMassMatrix(body, th.tolist(), physicsClientId=c))
+                e = self.k * (self.targets - th - self.dt * om)
+                acc = np.linalg.solve(M + self.dt * np.diag(self.d), e - self.d * om)
+                tau = e - self.d * (om + self.dt * acc)
+            else:
+                tau = self.k * (self.targets - th) - self.d * om
+            p.setJointMotorControlArray(body, joints, p.TORQUE_CONTROL, forces=tau.tolist(), physicsClientId=c)
+            p.stepSimulation(physicsClientId=c)
+
+    def link_frames(self) -> list[np.ndarray]:
+        """World 4x4 frames of the capsule links (at their proximal vertex)."""
+        out = []
+        for s in p.getLinkStates(self.body, self.capsules, computeForwardKinematics=1, physicsClientId=self.cid):
+            T = np.eye(4)
+            T[:3, :3] = _quat_to_mat(s[5])
+            T[:3, 3] = s[4]
+            out.append(T)
+        return out
+
+    def tip_pose(self) -> np.ndarray:
+        """Tip camera pose (4x4 camera-to-world; OpenCV frame = the kinematic tip frame)."""
+        s = p.getLinkState(self.body, self.capsules[-1], computeForwardKinematics=1, physicsClientId=self.cid)
+        R = _quat_to_mat(s[5])
+        last = len(self.joints) - 2
+        a = p.getJointStates(self.body, [last, last + 1], physicsClientId=self.cid)
+        T = np.eye(4)
+        T[:3, 3] = np.array(s[4]) + self.ds * R[:, 2]
+        T[:3, :3] = R @ _rx(0.5 * a[0][0]) @ _ry(0.5 * a[1][0])
+        return T
+
+    def bend_base_pose(self) -> np.ndarray:
+        """World pose of the bending-segment base (rolled by q2): the first bending vertex's parent frame."""
+        if self.n_shaft == 0:
+            return self.base_pose.copy()
+        s = p.getLinkState(self.body, 2 * self.n_shaft - 1, computeForwardKinematics=1, physicsClientId=self.cid)
+        T = np.eye(4)
+        T[:3, :3] = _quat_to_mat(s[5])
+        T[:3, 3] = np.array(s[4]) + self.ds_shaft * T[:3, 2]
+        return T
+
+    def sample_points(self) -> np.ndarray:
+        """Scope backbone points (every vertex and the tip), world, m."""
+        F = self.link_frames()
+        pts = [T[:3, 3] for T in F]
+        pts.append(F[-1][:3, 3] + self.ds * F[-1][:3, 2])
+        return np.array(pts)
+
+    def contacts(self) -> tuple[float, float]:
+        """(sum of normal forces N, max penetration m) between the scope and the wall."""
+        if self.wall < 0:
+            return 0.0, 0.0
+        cps = p.getContactPoints(self.body, self.wall, physicsClientId=self.cid)
+        if not cps:
+            return 0.0, 0.0
+        f = float(sum(cp[9] for cp in cps))
+        pen = float(max(0.0, max(-cp[8] for cp in cps)))
+        return f, pen
+
+    def update_friction(self) -> None:
+        """friction_model 'switch': mu_s for links slower than slip_speed_mm_s, mu_d for the others."""
+        prm = self.params
+        if prm.friction_model != "switch":
+            return
+        states = p.getLinkStates(self.body, self.capsules, computeLinkVelocity=1, physicsClientId=self.cid)
+        v_base = 0.0
+        for i, s in enumerate(states):
+            speed = float(np.linalg.norm(s[6])) - v_base
+            mu = prm.friction_dynamic if speed > prm.slip_speed_mm_s * 1e-3 else prm.friction_static
+            if mu != self._mu[i]:
+                p.changeDynamics(self.body, self.capsules[i], lateralFriction=mu, physicsClientId=self.cid)
+                self._mu[i] = mu
+
+    def energy(self) -> float:
+        """Kinetic energy of the links plus the joint springs' potential energy, J."""
+        c = self.cid
+        e = 0.0
+        states = p.getLinkStates(self.body, self.joints, computeLinkVelocity=1, computeForwardKinematics=1,
+                                 physicsClientId=c)
+        for j, s in enumerate(states):
+            info = p.getDynamicsInfo(self.body, j, physicsClientId=c)
+            m, I = info[0], np.array(info[2])
+            v, w = np.array(s[6]), np.array(s[7])
+            R = _quat_to_mat(s[1])
+            wl = R.T @ w
+            e += 0.5 * m * float(v @ v) + 0.5 * float(wl @ (I * wl))
+        th, _ = self.joint_state()
+        e += 0.5 * float(np.sum(self.k * (th - self.targets) ** 2))
+        return e
+
+
+def contact_probe(params: SimParams, force_n: float, time_s: float = 1.0) -> tuple[float, float]:
+    """Penetration (m) and normal force (N) of one scope link pressed on a static box by ``force_n``.
+
+    The link is a free capsule (diameter ``scope_diameter_mm``, length ``l / n_links``) with the
+    scope's contact settings (soft contact on the link only, box friction 1.0), lying on the box,
+    no gravity; the force acts at its centre for ``time_s``.  The check of the contact law.
+    """
+    c = p.connect(p.DIRECT)
+    try:
+        p.setPhysicsEngineParameter(fixedTimeStep=params.time_step_s, numSolverIterations=params.solver_iterations,
+                                    numSubSteps=0, deterministicOverlappingPairs=1, physicsClientId=c)
+        p.setGravity(0.0, 0.0, 0.0, physicsClientId=c)
+        box = p.createCollisionShape(p.GEOM_BOX, halfExtents=[0.05, 0.05, 0.05], physicsClientId=c)
+        b = p.createMultiBody(0.0, box, -1, [0.0, 0.0, -0.05], [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
+        p.changeDynamics(b, -1, lateralFriction=1.0, restitution=0.0, physicsClientId=c)
+        r = 0.5 * params.scope_diameter_mm * 1e-3
+        L = 0.05 / params.n_links
+        cap = p.createCollisionShape(p.GEOM_CAPSULE, radius=r, height=L, physicsClientId=c)
+        s = p.createMultiBody(params.linear_density_kg_m * L, cap, -1, [0.0, 0.0, r],
+                              p.getQuaternionFromEuler([0.5 * math.pi, 0.0, 0.0]), physicsClientId=c)
+        p.changeDynamics(s, -1, contactStiffness=params.contact_stiffness, contactDamping=params.contact_damping,
+                         lateralFriction=params.friction_dynamic, restitution=0.0, linearDamping=0.0,
+                         angularDamping=0.0, physicsClientId=c)
+        for _ in range(int(round(time_s / params.time_step_s))):
+            pos = p.getBasePositionAndOrientation(s, physicsClientId=c)[0]
+            p.applyExternalForce(s, -1, [0.0, 0.0, -force_n], pos, p.WORLD_FRAME, physicsClientId=c)
+            p.stepSimulation(physicsClientId=c)
+        z = p.getBasePositionAndOrientation(s, physicsClientId=c)[0][2]
+        fn = sum(cp[9] for cp in p.getContactPoints(s, b, physicsClientId=c))
+        return r - z, float(fn)
+    finally:
+        p.disconnect(physicsClientId=c)
+
+
+def settle_free(q, params: SimParams, geometry: ScopeGeometry, steps: int | None = None,
+                from_straight: bool = True) -> np.ndarray:
+    """Tip pose (base frame) of the free scope at ``q`` after settling: the check against ``fk``.
+
+    The base is placed at ``[0, 0, q3]`` rolled by ``q2``; no actuation non-idealities.  With
+    ``from_straight`` the segment starts straight and at rest and the joint springs bend it
+    (``steps`` default: ``settle_time_s``); otherwise it starts at the targets.
+    """
+    sim = ScopeSim(params, geometry)
+    try:
+        q = np.asarray(q, float)
+        base = np.eye(4)
+        base[:3, :3] = _rz(q[1])
+        base[:3, 3] = [0.0, 0.0, q[2]]
+        sim.set_base(base)
+        if not from_straight:
+            sim.set_bend(q[0])
+        sim.reset_joints()
+        sim.set_bend(q[0])
+        if steps is None:
+            steps = int(round(max(params.settle_time_s, 0.05) / params.time_step_s))
+        sim.step(steps)
+        return sim.tip_pose()
+    finally:
+        sim.close()
+
+
+# --------------------------------------------------------------------------- the sequence
+
+
+@dataclasses.dataclass
+class SimResult:
+    """Per-frame record of a simulated sequence (frames of the trajectory, 10 Hz).
+
+    Attributes:
+        timestamps: (T,) s.
+        tip_poses: (T, 4, 4) actual tip camera pose, camera-to-world (OpenCV frame, world RAS+ m).
+        q_cmd: (T, 3) commanded joints [q1 m, q2 rad, q3 m] at the frame time.
+        q_act: (T, 3) actual joints (delay and gain applied).
+        contact_force_n: (T,) sum of the wall's normal forces on the scope, N.
+        penetration_m: (T,) largest penetration of the scope into the wall, m.
+        tracking_error_m: (T,) |actual - planned| camera position, m.
+        tracking_error_rad: (T,) angle between the actual and planned view directions, rad.
+        report: summary (errors, wall time, steps, realtime factor, mesh crops, delay).
+    """
+
+    timestamps: np.ndarray
+    tip_poses: np.ndarray
+    q_cmd: np.ndarray
+    q_act: np.ndarray
+    contact_force_n: np.ndarray
+    penetration_m: np.ndarray
+    tracking_error_m: np.ndarray
+    tracking_error_rad: np.ndarray
+    report: dict
+
+    def to_dict(self) -> dict:
+        return {"description": "simulated scope: per-frame actual tip camera pose, joints, contact and tracking error",
+                "units": {"timestamp": "s", "pose": "4x4 camera-to-world, world RAS+ m", "q": "[q1 m, q2 rad, q3 m]",
+                          "contact_force": "N", "penetration": "m", "tracking_error": "m / rad"},
+                "report": self.report,
+                "frames": [{"index": i, "timestamp": float(self.timestamps[i]),
+                            "tip_pose": np.round(self.tip_poses[i], 12).tolist(),
+                            "q_cmd": self.q_cmd[i].tolist(), "q_act": self.q_act[i].tolist(),
+                            "contact_force_n": float(self.contact_force_n[i]),
+                            "penetration_m": float(self.penetration_m[i]),
+                            "tracking_error_m": float(self.tracking_error_m[i]),
+                            "tracking_error_rad": float(self.tracking_error_rad[i])}
+                           for i in range(len(self.timestamps))]}
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(math.atan2(np.linalg.norm(np.cross(a, b)), float(a @ b)))
+
+
+def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
+             geometry: ScopeGeometry | None = None) -> SimResult:
+    """Drive the simulated scope along ``trajectory`` (a planned :class:`Trajectory`) in ``mesh``.
+
+    ``mesh``: the closed lumen surface (world RAS+ m), or None for free space.  The
+    trajectory should start at least ``geometry.l`` inside the airway (the bending segment
+    starts there; e.g. ``start_offset_mm >= 60``).
+    """
+    params = params or SimParams()
+    geometry = geometry or ScopeGeometry()
+    t_wall0 = time.perf_counter()
+    route = Route.from_trajectory(trajectory)
+    poses = np.asarray(trajectory.poses, float)
+    ts = np.asarray(trajectory.timestamps, float)
+    T = len(ts)
+    passive = params.insertion_model == "passive"
+    Lp = params.passive_shaft_length_mm * 1e-3 if passive else 0.0
+    sim = ScopeSim(params, geometry, n_shaft=params.passive_shaft_links if passive else 0, shaft_length=Lp)
+    rng = np.random.default_rng(params.seed)
+    delay = sample_delay(rng, params.delay_max_s) if params.actuation else 0.0
+    signal = CommandSignal()
+    act = Actuator(signal, delay, geometry.q1_max, params.gain_q1, params.gain_q2, enabled=params.actuation)
+    ctrl = IKController(geometry, None if params.ik_direction_weight_mm is None else params.ik_direction_weight_mm * 1e-3,
+                        iterations=params.controller_iterations)
+    use_crop = mesh is not None and params.crop_mesh
+    face_tree = cKDTree(mesh.vertices[mesh.faces].mean(axis=1)) if use_crop else None
+    crop_pts = None
+    n_builds, faces_loaded = 0, []
+    t_build = 0.0
+
+    def load_wall() -> None:
+        nonlocal crop_pts, n_builds, t_build
+        t0 = time.perf_counter()
+        pts = sim.sample_points()
+        idx = crop_faces(mesh, pts, params.crop_radius_mm * 1e-3, face_tree)
+        F = mesh.faces[idx]
+        used, inv = np.unique(F.ravel(), return_inverse=True)
+        sim.set_wall(mesh.vertices[used], inv.reshape(-1, 3))
+        crop_pts = pts
+        n_builds += 1
+        faces_loaded.append(len(idx))
+        t_build += time.perf_counter() - t0
+
+    def apply(q: np.ndarray) -> None:
+        base = route.frame(q[2] - Lp)
+        base[:3, :3] = base[:3, :3] @ _rz(q[1])
+        sim.set_base(base)
+        sim.set_bend(q[0])
+
+    def base_frame_fn():
+        if not passive:
+            return route.frame
+        B = sim.bend_base_pose()
+        q_now = q_act_now
+        B[:3, :3] = B[:3, :3] @ _rz(-q_now[1])
+        return lambda q3: _advance(B, q3 - q_now[2])
+
+    # initial command: straight-on estimate of the base, then the controller
+    q_ref = np.array([0.0, 0.0, float(trajectory.arclength[0]) - geometry.l])
+    q0 = ctrl.command(poses[0], q_ref, route.frame)
+    signal.add(0.0, q0)
+    q_act_now = act(0.0)
+    apply(q_act_now)
+    sim.reset_joints()
+    if mesh is not None:
+        if use_crop:
+            load_wall()
+        else:
+            t0 = time.perf_counter()
+            sim.set_wall(mesh.vertices, mesh.faces)
+            t_build += time.perf_counter() - t0
+            n_builds, faces_loaded = 1, [mesh.n_faces]
+    dt = params.time_step_s
+    steps = 0
+    n_settle = int(round(params.settle_time_s / dt))
+    sim.step(n_settle)
+    steps += n_settle
+
+    tip = np.zeros((T, 4, 4))
+    q_cmd = np.zeros((T, 3))
+    q_act = np.zeros((T, 3))
+    force = np.zeros(T)
+    pen = np.zeros(T)
+
+    def record(k: int, t: float) -> None:
+        tip[k] = sim.tip_pose()
+        q_cmd[k] = signal(t)
+        q_act[k] = act(t)
+        force[k], pen[k] = sim.contacts()
+
+    record(0, 0.0)
+    t_now = 0.0
+    for k in range(1, T):
+        if use_crop:
+            pts = sim.sample_points()
+            if np.max(np.linalg.norm(pts - crop_pts, axis=1)) > params.crop_rebuild_mm * 1e-3:
+                load_wall()
+        sim.update_friction()
+        qk = ctrl.command(poses[k], signal(ts[k - 1]), base_frame_fn())
+        signal.add(ts[k], qk)
+        n = max(1, int(round((ts[k] - ts[k - 1]) / dt)))
+        h = (ts[k] - ts[k - 1]) / n
+        for j in range(n):
+            t_now = ts[k - 1] + (j + 1) * h
+            q_act_now = act(t_now)
+            apply(q_act_now)
+            sim.step(1)
+        steps += n
+        record(k, ts[k])
+    wall = time.perf_counter() - t_wall0
+    sim.close()
+
+    err_m = np.linalg.norm(tip[:, :3, 3] - poses[:, :3, 3], axis=1)
+    err_rad = np.array([_angle(tip[i, :3, 2], poses[i, :3, 2]) for i in range(T)])
+    duration = float(ts[-1] - ts[0]) if T > 1 else 0.0
+    report = {
+        "frames": int(T), "duration_s": duration, "steps": int(steps), "time_step_s": dt,
+        "wall_time_s": wall, "realtime_factor": duration / wall if wall > 0 else float("inf"),
+        "tracking_error_mm": {"median": float(np.median(err_m) * 1e3), "max": float(err_m.max() * 1e3),
+                              "mean": float(err_m.mean() * 1e3)},
+        "tracking_error_deg": {"median": float(np.degrees(np.median(err_rad))), "max": float(np.degrees(err_rad.max()))},
+        "contact_force_n": {"max": float(force.max()), "mean": float(force.mean()),
+                            "frames_in_contact": int((force > 0).sum())},
+        "penetration_mm": {"max": float(pen.max() * 1e3)},
+        "actuation_delay_s": delay,
+        "insertion_model": params.insertion_model,
+        "mesh": None if mesh is None else {"faces": int(mesh.n_faces), "cropped": bool(use_crop), "builds": n_builds,
+                                           "faces_loaded_mean": float(np.mean(faces_loaded)) if faces_loaded else 0.0,
+                                           "build_time_s": t_build},
+    }
+    return SimResult(timestamps=ts.copy(), tip_poses=tip, q_cmd=q_cmd, q_act=q_act, contact_force_n=force,
+                     penetration_m=pen, tracking_error_m=err_m, tracking_error_rad=err_rad, report=report)
+
+
+def _advance(B: np.ndarray, ds: float) -> np.ndarray:
+    T = B.copy()
+    T[:3, 3] = B[:3, 3] + ds * B[:3, 2]
+    return T
