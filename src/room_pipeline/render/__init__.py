@@ -1,0 +1,1 @@
+"""Rendering: one scene description (scene.py, camera.py), two backends (raycast.py: Open3D; blender.py: Cycles)."""
