@@ -42,6 +42,10 @@ STAGES = {
                    ["trajectory", "sequences"],
                    [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/{S}/metadata/timestamps.json",
                     f"{Q}/{S}/metadata/trajectory_tum.txt"], f"{Q}/metrics/trajectory_{S}.json"),
+    "simulate": (MATRIX, [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/anatomy/lung_model.obj",
+                          f"{Q}/anatomy/centreline_graph.json"], ["simulate"],
+                 [f"{Q}/{S}/metadata/robot_config.json", f"{Q}/{S}/metadata/simulation.json",
+                  f"{Q}/{S}/metadata/simulated_tum.txt"], f"{Q}/metrics/simulate_{S}.json"),
 }
 
 HEADER = """\

@@ -114,6 +114,7 @@ class TrajectoryParams:
     target_tolerance_mm: float = 1.0     # a target point may lie this far outside a centreline point's lumen
     unreachable: str = "error"           # error | nearest
     start_offset_mm: float = 0.0         # start this far along the root branch from its first point
+    min_lumen_radius_mm: float = 0.0     # the route ends where the lumen radius falls below this (0 = off)
     kappa_max: float | None = None       # 1/m; null: the scope geometry's q1_max / (2 gamma l) = 45.71
     curvature_safety: float = 0.95       # the smoother aims at this fraction of kappa_max
     clearance_fraction: float = 0.25     # margin = max(fraction * r, clearance_min_mm) ...
@@ -152,7 +153,7 @@ class TrajectoryParams:
             num(name, integer=True)
         num("max_generation", integer=True, optional=True)
         num("kappa_max", optional=True)
-        for name in ("target_tolerance_mm", "start_offset_mm", "curvature_safety", "clearance_fraction",
+        for name in ("target_tolerance_mm", "start_offset_mm", "min_lumen_radius_mm", "curvature_safety", "clearance_fraction",
                      "clearance_min_mm", "clearance_max_fraction", "smoothing_step_mm", "centring_weight",
                      "nearest_backoff_mm", "rate_hz", "speed_mm_s", "bifurcation_slowdown",
                      "bifurcation_distance_mm", "curvature_slowdown", "view_jitter_deg", "view_jitter_time_s"):
@@ -165,7 +166,7 @@ class TrajectoryParams:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"trajectory.{name} must be > 0, got {getattr(self, name)}")
-        nonneg = ("target_tolerance_mm", "start_offset_mm", "clearance_fraction", "clearance_min_mm",
+        nonneg = ("target_tolerance_mm", "start_offset_mm", "min_lumen_radius_mm", "clearance_fraction", "clearance_min_mm",
                   "centring_weight", "bifurcation_distance_mm", "view_jitter_deg", "relax_iterations",
                   "max_generation")
         for name in nonneg:
@@ -892,6 +893,18 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
     route = full
     first_fail = ""
     h_min = 2 * params.smoothing_step_mm * MM
+    narrow = np.nonzero(full.radius < params.min_lumen_radius_mm * MM)[0]
+    if len(narrow):
+        s_narrow = float(full.s[narrow[0]])
+        msg = (f"the lumen narrows to {full.radius[narrow[0]] / MM:.2f} mm radius < min_lumen_radius_mm "
+               f"{params.min_lumen_radius_mm:g} mm at {s_narrow / MM:.1f} mm along the route")
+        if params.unreachable == "error":
+            raise InputError(f"target branch {info.branch_id} is unreachable: {msg}")
+        first_fail = msg
+        s_new = s_narrow - params.nearest_backoff_mm * MM
+        if s_new < h_min:
+            raise InputError(f"target branch {info.branch_id}: no reachable point on its route ({msg})")
+        route = _truncate(full, s_new)
     while True:
         res = smooth_route(route.points, route.radius, route.s, fn, kmax, params)
         if res.ok_clearance and res.ok_curvature:

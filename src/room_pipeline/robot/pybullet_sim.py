@@ -114,7 +114,7 @@ class SimParams:
     passive_shaft_length_mm: float = 40.0   # passive: free shaft length behind the bending segment
     passive_shaft_links: int = 8
     shaft_bending_stiffness_nm2: float = 2.0e-3  # passive shaft EI, N m^2 (joint k = EI / link length)
-    crop_mesh: bool = True                  # load only the triangles near the scope
+    crop_mesh: bool = False                 # load only the triangles near the scope (no gain measured)
     crop_radius_mm: float = 12.0
     crop_rebuild_mm: float = 3.0
     settle_time_s: float = 0.3              # settling before the first frame

@@ -1,0 +1,101 @@
+"""Stage `simulate`: drive the PyBullet scope along a sequence's planned trajectory.
+
+Writes ``<patient>/<sequence>/metadata/robot_config.json`` (model parameters),
+``simulation.json`` (per 10 Hz frame: actual tip camera pose, commanded and
+actual q, contact force, penetration, tracking error) and
+``simulated_tum.txt`` (the actual camera poses in TUM format, which rendering
+uses).
+
+Modelling choice: the airway is open proximally.  The lumen mesh is closed at
+its top (the trachea entry of the phantom or the volume border of a CT), but a
+real airway continues to the larynx, and the scope's bending segment (50 mm)
+reaches above the first pose.  Triangles behind the plane of the first pose
+and within three root radii of the path axis are left out of the collision
+mesh; the count is recorded.
+"""
+from __future__ import annotations
+
+import types
+
+import numpy as np
+from omegaconf import DictConfig
+from scipy.spatial.transform import Rotation
+
+from ..config.compose import section
+from ..io.atomic import write_json, write_text
+from ..io.mesh import Mesh, read_obj
+from ..robot.kinematics import ScopeGeometry
+from ..robot.pybullet_sim import SimParams, robot_config, simulate
+from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
+from .trajectory import split_key
+
+#: report entries that depend on the machine, kept out of the data files (they go to metrics)
+_TIMING_KEYS = ("wall_time_s", "realtime_factor")
+
+
+def outputs(cfg: DictConfig, key: str) -> list:
+    patient, sequence = split_key(key)
+    meta = patient_paths(cfg, patient).sequence_metadata(sequence)
+    return [meta / "robot_config.json", meta / "simulation.json", meta / "simulated_tum.txt"]
+
+
+def open_entrance(mesh: Mesh, start: np.ndarray, tangent: np.ndarray, radius: float) -> tuple[Mesh, int]:
+    """Drop the triangles proximal to the start plane near the path axis (see module docstring)."""
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    rel = c - start
+    along = rel @ tangent
+    off_axis = np.linalg.norm(rel - along[:, None] * tangent, axis=1)
+    drop = (along < 0) & (off_axis < 3.0 * radius)
+    return Mesh(mesh.vertices, mesh.faces[~drop]), int(drop.sum())
+
+
+def tum(timestamps: np.ndarray, poses: np.ndarray) -> str:
+    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()
+    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    lines = ["# timestamp tx ty tz qx qy qz qw (simulated camera-to-world, OpenCV camera, world RAS+, m, s)"]
+    for t, p, qq in zip(timestamps, poses[:, :3, 3], q):
+        lines.append(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {qq[0]:.9f} {qq[1]:.9f} {qq[2]:.9f} {qq[3]:.9f}")
+    return "\n".join(lines) + "\n"
+
+
+def run(cfg: DictConfig, key: str) -> dict:
+    patient, sequence = split_key(key)
+    params = SimParams.from_dict(section(cfg, "simulate"))
+    geometry = ScopeGeometry()
+    paths = patient_paths(cfg, patient)
+    meta_dir = paths.sequence_metadata(sequence)
+    with StageTimer() as timer:
+        doc = read_json(meta_dir / "trajectory.json")
+        frames = doc["frames"]
+        traj = types.SimpleNamespace(
+            timestamps=np.array([f["timestamp"] for f in frames]),
+            poses=np.array([f["pose"] for f in frames]),
+            arclength=np.array([f["arclength"] for f in frames]))
+        graph = read_json(paths.centreline_graph)
+        root_radius = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
+        mesh, n_dropped = open_entrance(read_obj(paths.mesh), traj.poses[0, :3, 3], traj.poses[0, :3, 2],
+                                        root_radius)
+        res = simulate(traj, mesh, params, geometry)
+    report = {k: v for k, v in res.report.items() if k not in _TIMING_KEYS}
+    if isinstance(report.get("mesh"), dict):
+        report["mesh"] = {k: v for k, v in report["mesh"].items() if k != "build_time_s"}
+    report["entrance_faces_removed"] = n_dropped
+    sim_doc = res.to_dict()
+    sim_doc["report"] = report
+    sim_doc["metadata"] = metadata("simulate", patient, cfg, ("simulate",), sequence=sequence)
+    write_json(meta_dir / "robot_config.json", {**robot_config(params, geometry),
+                                               "metadata": metadata("simulate", patient, cfg, ("simulate",))})
+    write_json(meta_dir / "simulation.json", sim_doc)
+    write_text(meta_dir / "simulated_tum.txt", tum(res.timestamps, res.tip_poses))
+    r = res.report
+    metrics = {"frames": int(len(res.timestamps)),
+               "tracking_error_median_mm": round(r["tracking_error_mm"]["median"], 4),
+               "tracking_error_max_mm": round(r["tracking_error_mm"]["max"], 4),
+               "view_error_median_deg": round(r["tracking_error_deg"]["median"], 4),
+               "view_error_max_deg": round(r["tracking_error_deg"]["max"], 4),
+               "contact_force_max_n": round(r["contact_force_n"]["max"], 6),
+               "penetration_max_mm": round(r["penetration_mm"]["max"], 6),
+               "realtime_factor": round(r["realtime_factor"], 3),
+               "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
+    write_metrics(paths, f"simulate_{sequence}", metrics)
+    return metrics
