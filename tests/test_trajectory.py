@@ -349,3 +349,21 @@ def test_invariants_random_bifurcations(angle1, angle2, az, r1, length, jitter):
             assert tr.max_curvature <= KMAX and np.all(tr.clearance >= tr.margin)
         else:
             check_trajectory(tr, lambda p: tree.sdf(p)[0])
+
+
+def test_route_ends_where_the_lumen_is_narrower_than_the_scope():
+    """min_lumen_radius_mm: error, or (nearest) a path that stops before the narrow branch."""
+    specs = [(0, rotate_towards((0, 0, -1), (1, 0, 0), 20), 0.03, 5e-3),
+             (1, rotate_towards((0, 0, -1), (1, 0, 0), 25), 0.03, 2e-3)]   # 2 mm radius: too narrow
+    tree = chain_tree(specs)
+    graph = from_airway_tree(tree, 1e-3)
+    leaf = graph.leaves()[0].id
+    with pytest.raises(InputError, match="narrows"):
+        plan_path(graph, leaf, tree, TrajectoryParams(min_lumen_radius_mm=3.0))
+    tr = plan_path(graph, leaf, tree, TrajectoryParams(min_lumen_radius_mm=3.0, unreachable="nearest"))
+    assert not tr.target.reached and "narrows" in tr.target.note
+    r = -tree.sdf(tr.positions)[0]
+    assert r.min() > 0
+    # every pose lies inside the wide capsules: the narrow one is not entered
+    wide = AirwayTree([b for b in tree.branches if b.radius >= 3e-3])
+    assert np.all(wide.sdf(tr.positions)[0] < 0)
