@@ -46,12 +46,34 @@ class TipLight:
     falloff: str = "inverse_square"
 
 
+@dataclasses.dataclass(frozen=True)
+class Film:
+    """Exposure and view transform (Cycles: Film / Color Management).
+
+    exposure_ev: pixel = outgoing radiance * 2**exposure_ev (Blender's
+        Color Management 'Exposure'); ``None`` = *automatic-fixed*: chosen
+        once per sequence on ``auto_reference_frame`` so that the
+        ``auto_percentile``-th percentile of the luminance of the surface
+        pixels maps to ``auto_target`` (linear), then kept for every frame (no
+        flicker; the chosen value is reported so another backend can use it).
+    view_transform: 'standard' -- the sRGB transfer function, values clipped
+        to [0, 1], 8-bit (Blender's 'Standard' view transform, look 'None').
+    """
+
+    exposure_ev: float | None = None
+    auto_reference_frame: int = 0
+    auto_percentile: float = 95.0
+    auto_target: float = 0.8
+    view_transform: str = "standard"
+
+
 @dataclasses.dataclass
 class Scene:
     """What to render: the lumen mesh, its material, the tip light, the camera and the poses.
 
     face_labels: optional (F,) int per-face label (e.g. airway branch id) for segmentation.
     timestamps: (T,) seconds; poses: (T, 4, 4) camera-to-world.
+    film: exposure and view transform (:class:`Film`).
     """
 
     mesh: Mesh
@@ -61,6 +83,7 @@ class Scene:
     material: TissueMaterial = TissueMaterial()
     light: TipLight = TipLight()
     face_labels: np.ndarray | None = None
+    film: Film = Film()
 
     def __post_init__(self) -> None:
         self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)

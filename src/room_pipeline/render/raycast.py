@@ -1,0 +1,462 @@
+"""Fast renderer: Open3D ray casting of the lumen mesh, every modality from one cast per frame.
+
+This is the only rendering module that imports open3d.  Usage::
+
+    r = RaycastRenderer(scene)                       # builds the BVH once
+    out = r.render(i, {"rgb", "depth", "flow"})      # only these are computed
+    out["depth"], out["hit"], out["flow"], out["flow_valid"], out["rgb"]
+
+Ray casting
+    The mesh goes into an ``o3d.t.geometry.RaycastingScene`` once (vertices
+    float32, shifted by the mesh's bounding-box centre to keep float32
+    precision; everything is shifted back).  Each pixel's ray is
+    ``CameraIntrinsics.pixel_rays`` (camera-frame direction with z = 1, so the
+    hit parameter *is* planar depth), rotated by the pose and started on the
+    **near plane** (origin ``c + near * d``): geometry closer than ``near`` is
+    clipped as in Cycles (whose clipping is planar too); hits beyond ``far``
+    are no-hit.  One cast per frame, cached (``cache_frames``) so that the
+    flow of frame t reuses the cast of t+1 when the sequence is rendered in
+    order.
+
+Outputs of :meth:`RaycastRenderer.render` (always ``hit``: (H, W) bool)
+    ``depth``          (H, W) float32 planar z (metres); 0 where no hit.
+    ``relative_depth`` (H, W) uint16 normalised inverse depth of the frame:
+                       ``1 + round(65534 (1/d - 1/d_max) / (1/d_min - 1/d_max))``
+                       on hit pixels (d_min/d_max: the frame's nearest/farthest
+                       hit; 65535 = nearest, 1 = farthest), 0 = no hit;
+                       ``relative_depth_range`` = [d_min, d_max] (float64,
+                       metres) for the metadata.  Decode:
+                       ``1/d = 1/d_max + (r - 1) / 65534 (1/d_min - 1/d_max)``.
+    ``normals``        (H, W, 3) float32 unit normals in the **camera** frame,
+                       facing the camera (``n . ray < 0``); 0 where no hit.
+                       ``RaycastConfig.smooth_normals`` (default): vertex
+                       normals (area-weighted) interpolated barycentrically
+                       (Blender's 'shade smooth'); otherwise face normals.
+    ``segmentation``   (H, W) int32: ``Scene.face_labels`` of the hit triangle
+                       (0 for every surface pixel without labels), -1 = no hit;
+                       also ``primitive_ids`` (H, W) int32 triangle index, -1 = no hit.
+    ``world_points``   (H, W, 3) float64 hit points, world RAS+ metres (0 where no hit).
+    ``point_cloud``    (N, 3) float32 hit points in the **camera** frame (metres),
+                       row-major over hit pixels; ``point_cloud_normals``
+                       (N, 3) float32 (camera frame), ``point_cloud_pixels``
+                       (N, 2) int32 (u, v), ``point_cloud_colors`` (N, 3)
+                       uint8 when ``rgb`` is rendered too.  z equals ``depth``
+                       at the pixel, so the cloud re-projects onto the depth
+                       map (:func:`write_point_cloud` writes the PLY).
+    ``rgb``            (H, W, 3) uint8 sRGB (:mod:`room_pipeline.render.shading`);
+                       ``rgb_linear`` (H, W, 3) float32 linear radiance x 2^EV
+                       (before clipping); black where no hit.
+    ``flow``           (H, W, 2) float32 forward flow t -> t+1 and ``flow_valid``
+                       (H, W) bool (:mod:`room_pipeline.render.flow`); the last
+                       frame has no successor: flow 0, nothing valid.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import os
+import time
+from typing import Iterable
+
+import numpy as np
+
+from ..conventions import metadata_block
+from ..io.ply import write_ply
+from . import flow as flowmod
+from .scene import Scene
+from .shading import VIEW_TRANSFORMS, auto_exposure_ev, linear_to_srgb8, shade_coaxial, shade_linear
+
+MODALITIES = frozenset({"rgb", "depth", "relative_depth", "normals", "flow", "point_cloud", "segmentation",
+                        "world_points"})
+OCCLUSION_MODES = ("depth", "raycast")
+_INVALID = np.uint32(0xFFFFFFFF)
+
+
+@dataclasses.dataclass(frozen=True)
+class RaycastConfig:
+    """Knobs of the fast renderer.
+
+    smooth_normals: interpolated vertex normals (True) or face normals.
+    flow_occlusion: 'depth' -- test visibility at t+1 against frame t+1's
+        depth map (inverse-depth bilinear, no extra cast; conservative at
+        depth edges) -- or 'raycast' -- cast a ray through ``p'`` (exact, one
+        more cast per frame).
+    occlusion_abs_tol_m / occlusion_rel_tol: visible when the surface at t+1
+        is within ``abs + rel * z`` of the point's depth ``z``.
+    nthreads: Open3D ray-casting threads (0 = all cores).
+    cache_frames: how many frames' casts are kept.
+    """
+
+    smooth_normals: bool = True
+    flow_occlusion: str = "depth"
+    occlusion_abs_tol_m: float = 2e-5
+    occlusion_rel_tol: float = 1e-2
+    nthreads: int = 0
+    cache_frames: int = 2
+
+    def __post_init__(self) -> None:
+        if self.flow_occlusion not in OCCLUSION_MODES:
+            raise ValueError(f"flow_occlusion must be one of {OCCLUSION_MODES}, got {self.flow_occlusion!r}")
+        if self.cache_frames < 2:
+            raise ValueError("cache_frames must be >= 2 (flow needs frames t and t+1)")
+
+
+@dataclasses.dataclass
+class Cast:
+    """One frame's ray cast (views on Open3D's buffers, (H, W) layout).
+
+    depth float32 (0 = no hit), hit bool, prim uint32 (0xFFFFFFFF = no hit),
+    uv float32 (H, W, 2) barycentrics (hit = (1-u-v) v0 + u v1 + v v2).
+    """
+
+    depth: np.ndarray
+    hit: np.ndarray
+    prim: np.ndarray
+    uv: np.ndarray
+
+
+class RaycastRenderer:
+    """Open3D ray-casting backend for a :class:`~room_pipeline.render.scene.Scene`."""
+
+    def __init__(self, scene: Scene, config: RaycastConfig | None = None) -> None:
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.scene = scene
+        self.config = config or RaycastConfig()
+        if scene.film.view_transform not in VIEW_TRANSFORMS:
+            raise ValueError(f"film.view_transform must be one of {VIEW_TRANSFORMS}")
+        if scene.light.falloff != "inverse_square":
+            raise ValueError(f"light falloff {scene.light.falloff!r} not supported (inverse_square only)")
+        mesh = scene.mesh
+        if scene.face_labels is not None and len(scene.face_labels) != mesh.n_faces:
+            raise ValueError(f"face_labels has {len(scene.face_labels)} entries for {mesh.n_faces} faces")
+        v = mesh.vertices
+        self.origin = 0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3)
+        self._rc = o3d.t.geometry.RaycastingScene()
+        self._rc.add_triangles(o3d.core.Tensor((v - self.origin).astype(np.float32)),
+                               o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+        cam = scene.camera
+        self.rays = cam.pixel_rays()                                  # (H, W, 3) float64, z = 1
+        self._rays32 = self.rays.reshape(-1, 3).astype(np.float32)
+        self._rays_soa = (np.ascontiguousarray(self._rays32[:, 0]), np.ascontiguousarray(self._rays32[:, 1]))
+        len2 = np.einsum("hwi,hwi->hw", self.rays, self.rays)
+        self._ray_len2 = len2.astype(np.float32)
+        self._inv_ray_len = (1.0 / np.sqrt(len2)).astype(np.float32)
+        self._face_normals: np.ndarray | None = None
+        self._corner_normals: np.ndarray | None = None
+        vv, uu = np.mgrid[0:cam.height, 0:cam.width]
+        self._pixels = np.stack([uu, vv], axis=-1).astype(np.int32)
+        self._labels = (None if scene.face_labels is None
+                        else np.append(np.asarray(scene.face_labels, dtype=np.int32), np.int32(-1)))
+        self._cache: collections.OrderedDict[int, Cast] = collections.OrderedDict()
+        self._exposure_ev: float | None = scene.film.exposure_ev
+        self.timings: dict[str, float] = collections.defaultdict(float)   # seconds, accumulated per step
+        self.cast_count = 0
+
+    # ------------------------------------------------------------------ casting
+    def __len__(self) -> int:
+        return len(self.scene.poses)
+
+    def _cast_rays(self, pose: np.ndarray, dirs_cam: np.ndarray) -> dict:
+        """Cast camera-frame directions (N, 3) float32 (z = 1) from the pose's near plane."""
+        R = pose[:3, :3].astype(np.float32)
+        c = (pose[:3, 3] - self.origin).astype(np.float32)
+        rays = np.empty((len(dirs_cam), 6), dtype=np.float32)
+        np.matmul(dirs_cam, R.T, out=rays[:, 3:])
+        near = np.float32(self.scene.camera.near)
+        np.multiply(rays[:, 3:], near, out=rays[:, :3])
+        rays[:, :3] += c
+        out = self._rc.cast_rays(self._o3d.core.Tensor.from_numpy(rays), nthreads=self.config.nthreads)
+        self.cast_count += 1
+        return out
+
+    def _depth_from(self, out: dict) -> tuple[np.ndarray, np.ndarray]:
+        cam = self.scene.camera
+        t = out["t_hit"].numpy()
+        depth = t + np.float32(cam.near)                  # inf stays inf
+        hit = depth <= np.float32(cam.far)                # False for inf (no hit) and beyond the far plane
+        depth[~hit] = 0.0
+        return depth, hit
+
+    def cast(self, frame_index: int) -> Cast:
+        """The (cached) cast of one frame."""
+        i = self._index(frame_index)
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        t0 = time.perf_counter()
+        cam = self.scene.camera
+        h, w = cam.height, cam.width
+        out = self._cast_rays(self.scene.poses[i], self._rays32)
+        depth, hit = self._depth_from(out)
+        prim = out["primitive_ids"].numpy()
+        prim[~hit] = _INVALID
+        c = Cast(depth=depth.reshape(h, w), hit=hit.reshape(h, w), prim=prim.reshape(h, w),
+                 uv=out["primitive_uvs"].numpy().reshape(h, w, 2))
+        self.timings["cast"] += time.perf_counter() - t0
+        self._cache[i] = c
+        while len(self._cache) > self.config.cache_frames:
+            self._cache.popitem(last=False)
+        return c
+
+    def depth_at(self, pose: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Exact planar depth (float32, 0 = no hit) and hit mask at sub-pixel positions ``uv`` (N, 2) of a camera at ``pose``."""
+        cam = self.scene.camera
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        d = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))], axis=1)
+        if len(d) == 0:
+            return np.zeros(0, np.float32), np.zeros(0, bool)
+        out = self._cast_rays(np.asarray(pose, dtype=np.float64), d.astype(np.float32))
+        return self._depth_from(out)
+
+    def _index(self, frame_index: int) -> int:
+        n = len(self.scene.poses)
+        i = int(frame_index)
+        if not 0 <= i < n:
+            raise IndexError(f"frame {frame_index} out of range (0..{n - 1})")
+        return i
+
+    # ------------------------------------------------------------------ geometry
+    def _face_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World-frame unit face normals (F, 3), first vertices (F, 3) and per-face corner vertex normals (F, 9)."""
+        if self._corner_normals is None:
+            m = self.scene.mesh
+            v, f = m.vertices, m.faces
+            fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])      # length = 2 area
+            vn = np.zeros_like(v)
+            for k in range(3):
+                np.add.at(vn, f[:, k], fn)                                     # area-weighted
+            ln = np.linalg.norm(vn, axis=1, keepdims=True)
+            vn = vn / np.where(ln > 0, ln, 1.0)
+            lf = np.linalg.norm(fn, axis=1, keepdims=True)
+            self._face_normals = fn / np.where(lf > 0, lf, 1.0)
+            self._corner_normals = vn[f].reshape(-1, 9)
+        return self._face_normals, self.scene.mesh.vertices[self.scene.mesh.faces[:, 0]], self._corner_normals
+
+    def camera_normals(self, i: int, c: Cast) -> tuple[np.ndarray, np.ndarray]:
+        """Unit normals in the camera frame facing the camera, (H, W, 3) float32 (0 where no hit), and ``n . ray`` (H, W).
+
+        The side is per triangle: the face normal is flipped when the camera
+        centre lies on its back (``n_f . (v0 - c) > 0``), which is the sign of
+        ``n_f . ray`` for every ray hitting the face.  Smooth normals are the
+        corner normals of that side, interpolated; where one would not face
+        the camera (silhouettes) the face normal is used.
+        """
+        pose = self.scene.poses[i]
+        R, centre = pose[:3, :3], pose[:3, 3]
+        fn, v0, corners = self._face_tables()
+        nf = len(fn)
+        flip = np.where(np.einsum("ij,ij->i", fn, v0 - centre) > 0, -1.0, 1.0)
+        prim = np.where(c.hit, c.prim, np.uint32(nf)).astype(np.intp).reshape(-1)
+        rx, ry = self._rays_soa
+        # per-frame tables, camera frame, side folded in, components first (structure of arrays)
+        flat = np.zeros((3, nf + 1), dtype=np.float32)
+        flat[:, :-1] = ((fn * flip[:, None]) @ R).T                            # R^T n
+        if self.config.smooth_normals:
+            tab = np.zeros((9, nf + 1), dtype=np.float32)
+            tab[:, :-1] = ((corners.reshape(-1, 3) @ R).reshape(-1, 9) * flip[:, None]).T
+            uv = c.uv.reshape(-1, 2)
+            a, b = uv[:, 0], uv[:, 1]
+            w0 = 1 - a - b
+            n = np.empty((3, len(prim)), dtype=np.float32)
+            for j in range(3):
+                n[j] = tab[j].take(prim) * w0
+                n[j] += tab[3 + j].take(prim) * a
+                n[j] += tab[6 + j].take(prim) * b
+            ln = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+            nr = n[0] * rx + n[1] * ry + n[2]
+            bad = (nr >= -1e-7 * ln) | (ln <= 1e-12)          # back-facing interpolated normal, or no hit
+            ln[bad] = 1.0
+            inv = np.float32(1) / ln
+            n *= inv
+            nr *= inv
+            if bad.any():
+                idx = np.flatnonzero(bad)
+                pi = prim[idx]
+                n[:, idx] = flat[:, pi]
+                nr[idx] = n[0, idx] * rx[idx] + n[1, idx] * ry[idx] + n[2, idx]
+        else:
+            n = flat[:, prim]
+            nr = n[0] * rx + n[1] * ry + n[2]
+        h, w = c.depth.shape
+        return np.ascontiguousarray(n.T).reshape(h, w, 3), nr.reshape(h, w)
+
+    def camera_points(self, c: Cast) -> np.ndarray:
+        """(H, W, 3) float32 camera-frame points ``depth * ray`` (0 where no hit; z == depth exactly)."""
+        return self._rays32.reshape(c.depth.shape + (3,)) * c.depth[..., None]
+
+    # ------------------------------------------------------------------ exposure
+    @property
+    def exposure_ev(self) -> float:
+        """The film exposure: fixed, or automatic-fixed from the reference frame (computed once)."""
+        if self._exposure_ev is None:
+            film = self.scene.film
+            ref = min(max(film.auto_reference_frame, 0), len(self.scene.poses) - 1)
+            c = self.cast(ref)
+            lin = self._linear(ref, c, *self.camera_normals(ref, c))
+            self._exposure_ev = auto_exposure_ev(lin, c.hit, film)
+        return self._exposure_ev
+
+    def _linear(self, i: int, c: Cast, normals: np.ndarray, n_dot_ray: np.ndarray) -> np.ndarray:
+        light = self.scene.light
+        if np.any(np.asarray(light.offset_m) != 0):
+            return shade_linear(self.camera_points(c), normals, c.hit, self.scene.material, light)
+        # light at the camera: cos = -(n . ray) / |ray|, distance^2 = depth^2 |ray|^2
+        cos = -n_dot_ray * self._inv_ray_len
+        d2 = c.depth * c.depth * self._ray_len2
+        return shade_coaxial(cos, d2, c.hit, self.scene.material, light)
+
+    # ------------------------------------------------------------------ render
+    def render(self, frame_index: int, modalities: Iterable[str] = ("rgb", "depth")) -> dict[str, np.ndarray]:
+        """Render the requested modalities of one frame (see the module docstring for the keys)."""
+        mods = set(modalities)
+        unknown = mods - MODALITIES
+        if unknown:
+            raise ValueError(f"unknown modalities {sorted(unknown)} (known: {sorted(MODALITIES)})")
+        i = self._index(frame_index)
+        ev = self.exposure_ev if "rgb" in mods else None     # may cast the reference frame: before frame i
+        c = self.cast(i)
+        tm = self.timings
+        res: dict[str, np.ndarray] = {"hit": c.hit}
+        if "depth" in mods:
+            res["depth"] = c.depth
+        if "relative_depth" in mods:
+            t0 = time.perf_counter()
+            res["relative_depth"], res["relative_depth_range"] = relative_depth16(c.depth, c.hit)
+            tm["relative_depth"] += time.perf_counter() - t0
+        normals = None
+        if mods & {"normals", "rgb", "point_cloud"}:
+            t0 = time.perf_counter()
+            normals, n_dot_ray = self.camera_normals(i, c)
+            tm["normals"] += time.perf_counter() - t0
+            if "normals" in mods:
+                res["normals"] = normals
+        if "rgb" in mods:
+            t0 = time.perf_counter()
+            lin = self._linear(i, c, normals, n_dot_ray)
+            lin *= np.float32(2.0 ** ev)
+            res["rgb_linear"] = lin
+            res["rgb"] = linear_to_srgb8(lin, 0.0, self.scene.film.view_transform)
+            tm["rgb"] += time.perf_counter() - t0
+        if "segmentation" in mods:
+            t0 = time.perf_counter()
+            prim = np.where(c.hit, c.prim, np.uint32(self.scene.mesh.n_faces)).astype(np.intp)
+            res["primitive_ids"] = np.where(c.hit, c.prim.astype(np.int64), -1).astype(np.int32)
+            if self._labels is None:
+                res["segmentation"] = np.where(c.hit, 0, -1).astype(np.int32)
+            else:
+                res["segmentation"] = self._labels[np.minimum(prim, len(self._labels) - 1)]
+            tm["segmentation"] += time.perf_counter() - t0
+        if mods & {"point_cloud", "world_points"}:
+            t0 = time.perf_counter()
+            pc = self.camera_points(c)
+            if "world_points" in mods:
+                pose = self.scene.poses[i]
+                wp = pc.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+                wp[~c.hit] = 0.0
+                res["world_points"] = wp
+            if "point_cloud" in mods:
+                sel = self._select(c.hit)
+                res["point_cloud"] = sel(pc)
+                res["point_cloud_normals"] = sel(normals)
+                res["point_cloud_pixels"] = sel(self._pixels)
+                if "rgb" in res:
+                    res["point_cloud_colors"] = sel(res["rgb"])
+            tm["point_cloud"] += time.perf_counter() - t0
+        if "flow" in mods:
+            res["flow"], res["flow_valid"] = self._flow(i, c)
+        return res
+
+    @staticmethod
+    def _select(hit: np.ndarray):
+        """Row-major hit pixels of an (H, W, ...) array as (N, ...) (a reshape when everything is hit)."""
+        if hit.all():
+            return lambda a: np.ascontiguousarray(a).reshape((-1,) + a.shape[2:])
+        return lambda a: a[hit]
+
+    def _flow(self, i: int, c: Cast) -> tuple[np.ndarray, np.ndarray]:
+        h, w = c.depth.shape
+        if i + 1 >= len(self.scene.poses):
+            return np.zeros((h, w, 2), np.float32), np.zeros((h, w), bool)
+        c1 = self.cast(i + 1)
+        t0 = time.perf_counter()
+        poses = self.scene.poses
+        rep = flowmod.reproject(c.depth, c.hit, self.scene.camera, poses[i], poses[i + 1], rays=self.rays)
+        cfg = self.config
+        if cfg.flow_occlusion == "depth":
+            valid = flowmod.visible_in_depth(rep, c1.depth, c1.hit, cfg.occlusion_abs_tol_m, cfg.occlusion_rel_tol)
+        else:
+            valid = self.visible_by_raycast(rep, poses[i + 1])
+        self.timings["flow"] += time.perf_counter() - t0
+        return rep.flow, valid
+
+    def visible_by_raycast(self, rep: flowmod.Reprojection, pose_t1: np.ndarray) -> np.ndarray:
+        """Exact validity: cast from camera t+1 through ``p'``; visible when the hit depth matches ``z_{t+1}``."""
+        cfg = self.config
+        valid = np.zeros(rep.in_view.shape, dtype=bool)
+        idx = np.flatnonzero(rep.in_view)
+        if idx.size:
+            d1, hit1 = self.depth_at(pose_t1, rep.uv1.reshape(-1, 2)[idx])
+            z = rep.z1.reshape(-1)[idx]
+            valid.reshape(-1)[idx] = hit1 & (np.abs(d1 - z) <= cfg.occlusion_abs_tol_m + cfg.occlusion_rel_tol * z)
+        return valid
+
+    def metadata(self) -> dict:
+        """What a dataset writer records about this renderer (exposure, model, conventions)."""
+        sc = self.scene
+        return {"backend": "open3d_raycast", "config": dataclasses.asdict(self.config),
+                "exposure_ev": self.exposure_ev, "film": dataclasses.asdict(sc.film),
+                "material": dataclasses.asdict(sc.material), "light": dataclasses.asdict(sc.light),
+                "shading": "single bounce: Lambert (1 - F) base/pi + GGX/Smith/Schlick specular, point light at "
+                           "the camera, I = P/(4 pi), inverse-square; no indirect light, no subsurface",
+                "camera": sc.camera.to_dict(), "conventions": metadata_block()}
+
+
+def relative_depth16(depth: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised inverse depth as uint16 (see the module docstring) and [d_min, d_max] (float64 metres)."""
+    hit = np.asarray(hit, dtype=bool)
+    out = np.zeros(hit.shape, dtype=np.uint16)
+    if not hit.any():
+        return out, np.zeros(2)
+    d = np.asarray(depth, dtype=np.float64)[hit]
+    dmin, dmax = float(d.min()), float(d.max())
+    inv = 1.0 / d
+    span = 1.0 / dmin - 1.0 / dmax
+    r = (inv - 1.0 / dmax) / span if span > 0 else np.ones_like(inv)
+    out[hit] = (1 + np.rint(np.clip(r, 0.0, 1.0) * 65534)).astype(np.uint16)
+    return out, np.array([dmin, dmax])
+
+
+def decode_relative_depth16(rel: np.ndarray, depth_range: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`relative_depth16` up to quantisation: depth in metres, 0 where ``rel == 0``."""
+    dmin, dmax = (float(x) for x in depth_range)
+    r = np.asarray(rel, dtype=np.float64)
+    if dmax <= 0:
+        return np.zeros_like(r)
+    inv = 1.0 / dmax + (r - 1) / 65534.0 * (1.0 / dmin - 1.0 / dmax)
+    return np.where(r > 0, 1.0 / np.where(r > 0, inv, 1.0), 0.0)
+
+
+def write_point_cloud(path: str | os.PathLike, out: dict[str, np.ndarray], frame_index: int | None = None,
+                      pose: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY of a rendered ``point_cloud`` (camera frame, metres), atomically.
+
+    Properties: float x, y, z; float nx, ny, nz (unit, camera frame, facing
+    the camera); uchar red, green, blue when the RGB was rendered.  Header
+    comments give the frame, the units and (optionally) the frame index and
+    the camera-to-world pose to take the points to the world.
+    """
+    p, n = out["point_cloud"], out["point_cloud_normals"]
+    vertex = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2]}
+    if "point_cloud_colors" in out:
+        col = out["point_cloud_colors"]
+        vertex.update(red=col[:, 0], green=col[:, 1], blue=col[:, 2])
+    comments = ["room-pipeline point cloud, one point per surface pixel (row-major)",
+                "frame: OpenCV camera (x right, y down, z forward); units: m; z = planar depth",
+                "normals: unit, camera frame, facing the camera"]
+    if frame_index is not None:
+        comments.append(f"frame_index {int(frame_index)}")
+    if pose is not None:
+        comments.append("camera_to_world " + " ".join(repr(float(x)) for x in np.asarray(pose).reshape(-1)))
+    write_ply(path, vertex, comments=tuple(comments))

@@ -1,0 +1,168 @@
+"""The fast renderer's material and light model (pure numpy, float32).
+
+It takes the parameters the Cycles backend gives a Principled BSDF and a
+point light (:class:`~room_pipeline.render.scene.TissueMaterial`,
+:class:`~room_pipeline.render.scene.TipLight`, :class:`~room_pipeline.render.scene.Film`)
+and evaluates a single-bounce approximation of what Cycles renders.
+
+Light
+    A point light at ``TipLight.offset_m`` in the camera frame with radiant
+    power ``P`` watts radiates the intensity ``I = P / (4 pi)`` W/sr (Cycles'
+    convention for point lights).  Irradiance at a surface point at distance
+    ``r``: ``E = I max(n.l, 0) / r^2`` (inverse-square falloff).  The light
+    sits at (or next to) the camera, so everything the camera sees is lit: no
+    shadow rays.
+
+BRDF (dielectric Principled BSDF, metallic 0, no transmission / clearcoat / sheen)
+    ``f = (1 - F) base_color / pi  +  D G F / (4 (n.l) (n.v))``, with
+    GGX distribution ``D = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2)``,
+    ``a = roughness^2`` (Blender's remapping), Smith-GGX masking-shadowing in
+    the separable Schlick form ``G = G1(n.l) G1(n.v)``, ``G1(x) = x / (x (1 - k) + k)``,
+    ``k = a / 2``, and Schlick's Fresnel ``F = F0 + (1 - F0) (1 - v.h)^5`` with
+    ``F0 = 0.08 * specular`` (Principled 'Specular' 0.5 -> F0 = 0.04, IOR 1.5).
+    The specular lobe is white (specular tint 0): the wet-mucosa highlights.
+
+Camera response
+    Linear pixel value = outgoing radiance ``f E`` times ``2**exposure_ev``,
+    then the sRGB transfer function clipped to [0, 1] (Blender's 'Standard'
+    view transform) and rounded to 8 bits.
+
+What it leaves out (so Cycles images differ): indirect light
+(inter-reflections brighten the far, dimly lit parts of a tube), subsurface
+scattering (softens and reddens), the light's finite radius (``radius_m``:
+softer, wider highlights; treated as a point here), Blender 4's energy
+compensation of the multiscatter GGX and its layering of specular over
+diffuse (approximated by the ``1 - F`` weight), sampling noise and denoising.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .scene import Film, TipLight, TissueMaterial
+
+#: Rec. 709 / sRGB luminance weights (linear RGB)
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+VIEW_TRANSFORMS = ("standard",)
+
+
+def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLight) -> np.ndarray:
+    """The BRDF times the irradiance, from per-pixel cosines and squared light distance (float32)."""
+    f32 = np.float32
+    nl = np.clip(nl, 0.0, 1.0, dtype=f32)
+    nv = np.clip(nv, f32(1e-4), 1.0, dtype=f32)
+    nh = np.clip(nh, 0.0, 1.0, dtype=f32)
+    intensity = f32(light.power_w / (4.0 * math.pi))
+    irradiance = (intensity * nl) / np.maximum(r2, f32(1e-12))                 # E = I cos / r^2
+    a = f32(max(material.roughness, 1e-3) ** 2)
+    a2 = a * a
+    f0 = f32(0.08 * material.specular)
+    if vh is None:                                                             # v = h: F = F0
+        fres = f0
+    else:
+        vh = np.clip(vh, 0.0, 1.0, dtype=f32)
+        fres = f0 + (1 - f0) * (1 - vh) ** 5
+    dd = nh * nh * (a2 - 1) + 1
+    D = a2 / (f32(math.pi) * dd * dd)
+    k = a / 2
+    # G / (4 nl nv) with G = G1(nl) G1(nv), G1(x) = x / (x (1 - k) + k): the nl nv cancel
+    vis = f32(0.25) / ((nl * (1 - k) + k) * (nv * (1 - k) + k))
+    ks = (D * vis * fres) * irradiance                                          # white specular lobe
+    kd = (1 - fres) * irradiance
+    base = np.asarray(material.base_color, dtype=f32) / f32(math.pi)
+    out = kd[..., None] * base
+    out += ks[..., None]
+    if mask is not None:
+        out *= np.asarray(mask, dtype=f32)[..., None]
+    return out
+
+
+def shade_linear(points_cam: np.ndarray, normals_cam: np.ndarray, mask: np.ndarray | None,
+                 material: TissueMaterial, light: TipLight) -> np.ndarray:
+    """Outgoing radiance (linear RGB, float32, (..., 3)) towards the camera.
+
+    ``points_cam``: (..., 3) surface points in the camera frame (metres);
+    ``normals_cam``: (..., 3) unit normals facing the camera; ``mask``: where
+    there is a surface (elsewhere the result is 0); float32 throughout.
+    """
+    f32 = np.float32
+    p = np.asarray(points_cam, dtype=f32)
+    n = np.asarray(normals_cam, dtype=f32)
+    lp = np.asarray(light.offset_m, dtype=f32)
+    dot = lambda x, y: np.einsum("...i,...i->...", x, y)  # noqa: E731
+    pv = dot(p, p)
+    v = p * (-1.0 / np.sqrt(np.maximum(pv, f32(1e-30))))[..., None]            # towards the camera
+    lv = lp - p
+    r2 = dot(lv, lv)
+    l = lv * (1.0 / np.sqrt(np.maximum(r2, f32(1e-30))))[..., None]            # towards the light
+    hv = l + v
+    h = hv * (1.0 / np.sqrt(np.maximum(dot(hv, hv), f32(1e-30))))[..., None]
+    return _radiance(dot(n, l), dot(n, v), dot(n, h), dot(v, h), r2, mask, material, light)
+
+
+def shade_coaxial(cos_nv: np.ndarray, dist2: np.ndarray, mask: np.ndarray | None,
+                  material: TissueMaterial, light: TipLight) -> np.ndarray:
+    """:func:`shade_linear` for a light at the camera centre (``offset_m`` = 0): then l = v = h.
+
+    ``cos_nv``: (...) cosine between the normal and the direction to the
+    camera; ``dist2``: squared distance to the camera (m^2).  Fewer operations
+    on per-pixel scalars (the renderer's fast path); same values up to float32 rounding.
+    """
+    c = np.asarray(cos_nv, dtype=np.float32)
+    return _radiance(c, c, c, None, np.asarray(dist2, dtype=np.float32), mask, material, light)
+
+
+def luminance(linear_rgb: np.ndarray) -> np.ndarray:
+    return np.asarray(linear_rgb, dtype=np.float32) @ LUMINANCE
+
+
+def auto_exposure_ev(linear_rgb: np.ndarray, mask: np.ndarray, film: Film) -> float:
+    """EV mapping the ``film.auto_percentile`` luminance percentile of ``mask``-ed pixels to ``film.auto_target``.
+
+    0.0 when nothing is lit.  Rounded to 1/1000 EV so the value prints and
+    travels (to the Cycles backend, to metadata) exactly.
+    """
+    y = luminance(linear_rgb)[np.asarray(mask, dtype=bool)]
+    y = y[y > 0]
+    if y.size == 0:
+        return 0.0
+    ref = float(np.percentile(y, film.auto_percentile))
+    if ref <= 0 or not math.isfinite(ref):
+        return 0.0
+    return round(math.log2(film.auto_target / ref), 3)
+
+
+def _srgb_lut(n: int) -> np.ndarray:
+    """8-bit sRGB code for linear values at the centres of ``n`` equal bins of [0, 1]."""
+    x = (np.arange(n, dtype=np.float64) + 0.5) / n
+    s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.clip(np.rint(s * 255.0), 0, 255).astype(np.uint8)
+
+
+_LUT_BINS = 1 << 16
+_LUT = _srgb_lut(_LUT_BINS)
+
+
+def linear_to_srgb8(linear_rgb: np.ndarray, exposure_ev: float = 0.0, view_transform: str = "standard"
+                    ) -> np.ndarray:
+    """Scale by ``2**exposure_ev``, clip to [0, 1], sRGB-encode, 8 bits (uint8, same shape).
+
+    The transfer function goes through a 65536-entry table (bins of 1/65536 of
+    the linear range): at most one code value from the exact formula, at the
+    rounding boundaries only.
+    """
+    if view_transform not in VIEW_TRANSFORMS:
+        raise ValueError(f"view_transform must be one of {VIEW_TRANSFORMS}, got {view_transform!r}")
+    scale = np.float32(2.0 ** exposure_ev * _LUT_BINS)
+    idx = np.asarray(linear_rgb, dtype=np.float32) * scale
+    np.nan_to_num(idx, copy=False, nan=0.0, posinf=_LUT_BINS - 1, neginf=0.0)
+    np.clip(idx, 0, _LUT_BINS - 1, out=idx)
+    return _LUT[idx.astype(np.int32)]
+
+
+def srgb8_exact(linear_rgb: np.ndarray, exposure_ev: float = 0.0) -> np.ndarray:
+    """The same transform evaluated with the formula (float64): the reference for tests."""
+    x = np.clip(np.asarray(linear_rgb, dtype=np.float64) * 2.0 ** exposure_ev, 0.0, 1.0)
+    s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.clip(np.rint(s * 255.0), 0, 255).astype(np.uint8)
