@@ -46,6 +46,12 @@ STAGES = {
                           f"{Q}/anatomy/centreline_graph.json"], ["simulate"],
                  [f"{Q}/{S}/metadata/robot_config.json", f"{Q}/{S}/metadata/simulation.json",
                   f"{Q}/{S}/metadata/simulated_tum.txt"], f"{Q}/metrics/simulate_{S}.json"),
+    # reads the planned or the simulated poses (render.poses), so both are listed
+    "render": (MATRIX, [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/{S}/metadata/simulation.json",
+                        f"{Q}/anatomy/lung_model.obj", f"{Q}/anatomy/centreline_graph.json"], ["render"],
+               [f"{Q}/{S}/{d}" for d in ("rgb", "depth", "relative_depth", "surface_normals", "optical_flow",
+                                         "point_clouds", "segmentation", "calibration")]
+               + [f"{Q}/{S}/metadata/render.json"], f"{Q}/metrics/render_{S}.json"),
 }
 
 HEADER = """\

@@ -16,10 +16,12 @@ BIN = Path(sys.executable).parent
 
 #: a small phantom so the whole chain runs in seconds (coarse voxels, fewer generations)
 SMALL = ["phantom.spacing_mm=[1.2,1.2,1.2]", "phantom.max_generation=5", "sequences=[sequence_000]",
-         "trajectory.n=1"]
+         "trajectory.n=1", "render.width=64", "render.height=48", "render.max_frames=4",
+         "render.modalities=[rgb,depth,relative_depth,normals,flow,segmentation,point_cloud]"]
 P = "@patient_000"
 ANATOMY = {f"{s}{P}" for s in ("segment", "sdf", "mesh", "validate_anatomy", "medial_axis",
-                               "validate_centreline")} | {f"trajectory{P}-sequence_000"}
+                               "validate_centreline")} | {f"{s}{P}-sequence_000" for s in ("trajectory", "simulate",
+                                                                                             "render")}
 
 pytestmark = pytest.mark.slow
 
@@ -45,6 +47,8 @@ def project(tmp_path_factory):
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO,
                            capture_output=True, text=True, check=True).stdout.split()
     for f in files:
+        if f.startswith("data/") or f == "dvc.lock":   # generated outputs of a local run stay behind
+            continue
         if (REPO / f).is_file():
             (dst / f).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(REPO / f, dst / f)
@@ -67,10 +71,11 @@ def test_dvc_repro_caches_and_reruns_only_what_changed(project):
     m = json.loads(_sh(["dvc", "metrics", "show", "--json"], project).stdout)
     assert m, "dvc metrics show returned nothing"
 
-    # a mesh parameter: only mesh (and the validation that reads the mesh) rerun
+    # a mesh parameter: only mesh and what reads the mesh (validation, simulation, rendering) rerun
     _sh(["room", "params", *SMALL, "mesh.smoothing_iterations=3"], project)
     out = _sh(["dvc", "repro"], project).stdout
-    assert _ran(out) == {"mesh@patient_000", "validate_anatomy@patient_000"}, out
+    assert _ran(out) == {f"mesh{P}", f"validate_anatomy{P}", f"simulate{P}-sequence_000",
+                         f"render{P}-sequence_000"}, out
 
     # a segmentation parameter that changes the mask: segment and everything downstream of it
     # (DVC hashes content: a parameter change that leaves the mask byte-identical stops at segment)
@@ -78,8 +83,8 @@ def test_dvc_repro_caches_and_reruns_only_what_changed(project):
     out = _sh(["dvc", "repro"], project).stdout
     ran = _ran(out)
     assert f"phantom{P}" not in ran
-    # the trajectory reruns only if the centreline graph or the SDF actually changed
-    assert ANATOMY - {f"trajectory{P}-sequence_000"} <= ran <= ANATOMY, out
+    # per-sequence stages rerun only if the centreline graph, SDF or mesh actually changed
+    assert {s for s in ANATOMY if "sequence" not in s} <= ran <= ANATOMY, out
 
 
 def test_room_run_reproduces_dvc_bytes(project):
@@ -97,3 +102,40 @@ def test_room_run_reproduces_dvc_bytes(project):
     for p in files:
         rel = p.relative_to(ref)
         assert p.read_bytes() == (out / "patient_000" / rel).read_bytes(), f"{rel} differs"
+
+
+def test_rendered_files_are_read_by_standard_tools(project):
+    """EXR by OpenImageIO and OpenCV, PNG by OpenCV, PLY by Open3D, .flo by a Middlebury reader."""
+    import numpy as np
+
+    _sh(["room", "params", *SMALL], project)
+    _sh(["dvc", "repro"], project)
+    seq = project / "data" / "output" / "patient_000" / "sequence_000"
+    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+    import cv2
+    import open3d as o3d
+    import OpenImageIO as oiio
+
+    cal = json.loads((seq / "calibration" / "camera_params.json").read_text())
+    assert (cal["width"], cal["height"]) == (64, 48)
+    for i in range(4):
+        name = f"frame_{i:04d}"
+        rgb = cv2.imread(str(seq / "rgb" / f"{name}.png"))
+        assert rgb.shape == (48, 64, 3)
+        depth = oiio.ImageInput.open(str(seq / "depth" / f"{name}.exr")).read_image()[..., 0]
+        assert depth.shape == (48, 64) and np.all(np.isfinite(depth)) and depth.max() > 0
+        assert np.array_equal(cv2.imread(str(seq / "depth" / f"{name}.exr"), cv2.IMREAD_UNCHANGED), depth)
+        n = oiio.ImageInput.open(str(seq / "surface_normals" / f"{name}.exr")).read_image()
+        hit = depth > 0
+        assert np.allclose(np.linalg.norm(n[hit], axis=1), 1.0, atol=1e-4)
+        raw = (seq / "optical_flow" / f"{name}.flo").read_bytes()
+        assert np.frombuffer(raw[:4], "<f4")[0] == np.float32(202021.25)
+        w, h = np.frombuffer(raw[4:12], "<i4")
+        flow = np.frombuffer(raw[12:], "<f4").reshape(h, w, 2)
+        assert (w, h) == (64, 48) and np.all(np.isfinite(flow))
+        pc = o3d.io.read_point_cloud(str(seq / "point_clouds" / f"{name}.ply"))
+        assert len(pc.points) == int(hit.sum()) and pc.has_normals()
+        seg = cv2.imread(str(seq / "segmentation" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+        assert seg.dtype == np.uint16 and np.array_equal(seg > 0, hit)
+    legend = json.loads((seq / "segmentation" / "legend.json").read_text())
+    assert legend["labels"]

@@ -10,12 +10,12 @@ from types import ModuleType
 
 #: pipeline order; `room run` executes these in turn
 STAGES = ("phantom", "segment", "sdf", "mesh", "validate_anatomy", "medial_axis", "validate_centreline",
-          "trajectory", "simulate")
+          "trajectory", "simulate", "render")
 
 #: how each stage fans out: over phantom patients, all patients, or patients x sequences
 FAN_OUT = {"phantom": "phantoms", "segment": "patients", "sdf": "patients", "mesh": "patients",
            "validate_anatomy": "phantoms", "medial_axis": "patients", "validate_centreline": "phantoms",
-           "trajectory": "sequences", "simulate": "sequences"}
+           "trajectory": "sequences", "simulate": "sequences", "render": "sequences"}
 
 
 def load(name: str) -> ModuleType:
