@@ -2,9 +2,10 @@
 """Per-stage wall time and peak memory of the anatomy chain at several phantom volume sizes.
 
 Runs ``room run`` (each stage in its own process, exactly as DVC does) on the
-phantom with the voxel size chosen so that the largest volume dimension is
-about N voxels, for N in --sizes (default 128 256 384), plus the default
-phantom.  Reads each stage's metrics (wall_time_s, peak_rss_mb), fits the
+phantom with the (isotropic) voxel size chosen so that the volume holds about
+N^3 voxels, for N in --sizes (default 128 256 384), plus the default phantom.
+The field of view is the phantom's (body outline + tree + margin), so only the
+voxel size changes.  Reads each stage's metrics (wall_time_s, peak_rss_mb), fits the
 growth exponent t ~ voxels^a per stage, prints a table and saves
 benchmarks/results/anatomy_speed.{json,md}.
 
@@ -58,9 +59,9 @@ def main() -> None:
         default["case"] = "default"
         fov_mm = np.array(default["shape"]) * np.array(default["spacing_mm"])
         for n in args.sizes:
-            s = float(fov_mm.max() / n)
+            s = float((np.prod(fov_mm) / n ** 3) ** (1 / 3))
             r = run_case(Path(tmp) / f"n{n}", seed + [f"phantom.spacing_mm=[{s:.4f},{s:.4f},{s:.4f}]"])
-            r["case"] = f"max dim ~{n}"
+            r["case"] = f"~{n}^3 voxels"
             rows.append(r)
         rows.append(default)
     rows.sort(key=lambda r: r["voxels"])
