@@ -803,12 +803,19 @@ class Trajectory:
 
     def to_tum(self) -> str:
         """TUM RGB-D trajectory text: ``timestamp tx ty tz qx qy qz qw`` per line (camera-to-world, m, s)."""
-        q = Rotation.from_matrix(self.poses[:, :3, :3]).as_quat()  # x, y, z, w
-        q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)  # w >= 0 (same rotation)
-        lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera, world RAS+, metres, seconds)"]
-        for t, p, qq in zip(self.timestamps, self.positions, q):
-            lines.append(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {qq[0]:.9f} {qq[1]:.9f} {qq[2]:.9f} {qq[3]:.9f}")
-        return "\n".join(lines) + "\n"
+        return tum_text(self.timestamps, self.poses)
+
+
+def tum_text(timestamps: np.ndarray, poses: np.ndarray,
+             header: str = "camera-to-world, OpenCV camera, world RAS+, metres, seconds") -> str:
+    """TUM trajectory text of (T,) timestamps and (T, 4, 4) poses; quaternions with w >= 0."""
+    poses = np.asarray(poses, dtype=np.float64)
+    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
+    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)  # w >= 0 (same rotation)
+    lines = [f"# timestamp tx ty tz qx qy qz qw ({header})"]
+    for t, p, qq in zip(timestamps, poses[:, :3, 3], q):
+        lines.append(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {qq[0]:.9f} {qq[1]:.9f} {qq[2]:.9f} {qq[3]:.9f}")
+    return "\n".join(lines) + "\n"
 
 
 def parse_tum(text: str) -> tuple[np.ndarray, np.ndarray]:

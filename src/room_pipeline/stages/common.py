@@ -61,6 +61,15 @@ class StageTimer:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def round_floats(obj: Any, digits: int = 6) -> Any:
+    """Round every float in a nested dict (metrics files stay short and diff-able)."""
+    if isinstance(obj, dict):
+        return {k: round_floats(v, digits) for k, v in obj.items()}
+    if isinstance(obj, float):
+        return round(obj, digits)
+    return obj
+
+
 def _finite(obj: Any) -> Any:
     """Replace NaN/inf by None (JSON has no such numbers)."""
     if isinstance(obj, dict):

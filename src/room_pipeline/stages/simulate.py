@@ -19,11 +19,11 @@ import types
 
 import numpy as np
 from omegaconf import DictConfig
-from scipy.spatial.transform import Rotation
 
 from ..config.compose import section
 from ..io.atomic import write_json, write_text
 from ..io.mesh import Mesh, read_obj
+from ..planning.trajectory import tum_text
 from ..robot.kinematics import ScopeGeometry
 from ..robot.pybullet_sim import SimParams, robot_config, simulate
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
@@ -47,15 +47,6 @@ def open_entrance(mesh: Mesh, start: np.ndarray, tangent: np.ndarray, radius: fl
     off_axis = np.linalg.norm(rel - along[:, None] * tangent, axis=1)
     drop = (along < 0) & (off_axis < 3.0 * radius)
     return Mesh(mesh.vertices, mesh.faces[~drop]), int(drop.sum())
-
-
-def tum(timestamps: np.ndarray, poses: np.ndarray) -> str:
-    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()
-    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
-    lines = ["# timestamp tx ty tz qx qy qz qw (simulated camera-to-world, OpenCV camera, world RAS+, m, s)"]
-    for t, p, qq in zip(timestamps, poses[:, :3, 3], q):
-        lines.append(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {qq[0]:.9f} {qq[1]:.9f} {qq[2]:.9f} {qq[3]:.9f}")
-    return "\n".join(lines) + "\n"
 
 
 def run(cfg: DictConfig, key: str) -> dict:
@@ -86,7 +77,8 @@ def run(cfg: DictConfig, key: str) -> dict:
     write_json(meta_dir / "robot_config.json", {**robot_config(params, geometry),
                                                "metadata": metadata("simulate", patient, cfg, ("simulate",))})
     write_json(meta_dir / "simulation.json", sim_doc)
-    write_text(meta_dir / "simulated_tum.txt", tum(res.timestamps, res.tip_poses))
+    write_text(meta_dir / "simulated_tum.txt",
+               tum_text(res.timestamps, res.tip_poses, "simulated camera-to-world, OpenCV camera, world RAS+, m, s"))
     r = res.report
     metrics = {"frames": int(len(res.timestamps)),
                "tracking_error_median_mm": round(r["tracking_error_mm"]["median"], 4),

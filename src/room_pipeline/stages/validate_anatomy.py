@@ -21,7 +21,7 @@ from ..evaluate.segmentation import segmentation_metrics
 from ..evaluate.surface import mesh_surface_distance, sdf_error
 from ..io.mesh import read_obj
 from ..io.volume import read_nifti_sdf, read_volume
-from .common import StageTimer, patient_paths, read_json, write_metrics
+from .common import StageTimer, patient_paths, read_json, round_floats, write_metrics
 
 #: the SDF accuracy bound is stated "within 3 mm of the wall"
 SDF_BAND_M = 3e-3
@@ -30,13 +30,6 @@ SDF_BAND_M = 3e-3
 def outputs(cfg: DictConfig, patient: str) -> list:
     return [patient_paths(cfg, patient).metrics("anatomy_validation")]
 
-
-def _round(d):
-    if isinstance(d, dict):
-        return {k: _round(v) for k, v in d.items()}
-    if isinstance(d, float):
-        return round(d, 6)
-    return d
 
 
 def run(cfg: DictConfig, patient: str) -> dict:
@@ -74,7 +67,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
         ("mesh_isolation_p95_le_0.5_voxel", mesh_iso["p95_vox"] <= 0.5),
         ("mesh_watertight", mesh_iso["watertight"] and mesh_e2e["watertight"]),
     )}
-    metrics = _round({
+    metrics = round_floats({
         "checks": checks,
         "voxel_size_mm": voxel * 1e3,
         "segment": seg,

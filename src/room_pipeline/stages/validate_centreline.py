@@ -16,19 +16,12 @@ from ..anatomy.tree import AirwayTree
 from ..config.compose import section
 from ..evaluate.centreline import centreline_metrics
 from ..io.volume import read_nifti_sdf
-from .common import StageTimer, patient_paths, read_json, write_metrics
+from .common import StageTimer, patient_paths, read_json, round_floats, write_metrics
 
 
 def outputs(cfg: DictConfig, patient: str) -> list:
     return [patient_paths(cfg, patient).metrics("centreline_validation")]
 
-
-def _round(d):
-    if isinstance(d, dict):
-        return {k: _round(v) for k, v in d.items()}
-    if isinstance(d, float):
-        return round(d, 6)
-    return d
 
 
 def run(cfg: DictConfig, patient: str) -> dict:
@@ -47,7 +40,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
         "spurious_le_0.05": iso.get("spurious_fraction", 1.0) <= 0.05,
         "median_bifurcation_error_le_1mm": iso.get("bifurcation_error_median_m", float("inf")) <= 1e-3,
     }
-    metrics = _round({"checks": checks, "isolation": iso, "end_to_end": e2e,
+    metrics = round_floats({"checks": checks, "isolation": iso, "end_to_end": e2e,
                       "wall_time_s": timer.wall_s, "peak_rss_mb": timer.peak_rss_mb()})
     write_metrics(paths, "centreline_validation", metrics)
     return metrics
