@@ -37,13 +37,4 @@ def capsule_tree(generations: int = 4, r0: float = 4e-3, length0: float = 30e-3,
 
 def rasterise(tree: AirwayTree, spacing, margin: float = 5e-3) -> tuple[Volume, Volume]:
     """(true mask uint8, true SDF float32 metres) at voxel centres of a grid around the tree."""
-    spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
-    lo, hi = tree.bounds(margin)
-    shape = tuple(int(n) for n in np.ceil((hi - lo) / spacing).astype(int) + 1)
-    aff = np.eye(4)
-    aff[:3, :3] = np.diag(spacing)
-    aff[:3, 3] = lo
-    grid = Volume(np.zeros(shape, np.uint8), aff)
-    d, _ = tree.sdf(grid.index_to_world(np.indices(shape).reshape(3, -1).T), band=0.02)
-    d = d.reshape(shape)
-    return grid.with_data((d < 0).astype(np.uint8)), grid.with_data(d.astype(np.float32))
+    return tree.rasterise(spacing, margin)

@@ -31,7 +31,6 @@ sys.path.insert(0, str(ROOT / "src"))
 from room_pipeline.anatomy.centreline import from_airway_tree  # noqa: E402
 from room_pipeline.anatomy.mesh import MeshParams, extract_surface  # noqa: E402
 from room_pipeline.anatomy.phantom import PhantomParams, grow_tree  # noqa: E402
-from room_pipeline.io.volume import Volume  # noqa: E402
 from room_pipeline.planning.trajectory import TrajectoryParams, plan_path  # noqa: E402
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY as G, fk  # noqa: E402
 from room_pipeline.robot.pybullet_sim import SimParams, contact_probe, settle_free, simulate  # noqa: E402
@@ -40,14 +39,10 @@ MM = 1e-3
 
 
 def lumen_mesh(tree, lo, hi, h=1e-3):
-    n = np.ceil((hi - lo) / h).astype(int) + 1
-    ii = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
-    d = tree.sdf(lo + ii * h, band=4e-3)[0].reshape(n)
-    d[0], d[-1], d[:, 0], d[:, -1], d[:, :, 0], d[:, :, -1] = h, h, h, h, h, h
-    aff = np.eye(4)
-    aff[:3, :3] *= h
-    aff[:3, 3] = lo
-    return extract_surface(Volume(d.astype(np.float32), aff), MeshParams()).mesh
+    _, sdf = tree.rasterise(h, lo=np.asarray(lo, float), hi=np.asarray(hi, float), band=4e-3)
+    d = sdf.data
+    d[0], d[-1], d[:, 0], d[:, -1], d[:, :, 0], d[:, :, -1] = h, h, h, h, h, h   # close the open ends
+    return extract_surface(sdf, MeshParams()).mesh
 
 
 def scene(target: int, start_offset_mm: float):

@@ -27,14 +27,7 @@ SP = 0.5 * MM
 # --------------------------------------------------------------------------- helpers
 def mask_of(tree: AirwayTree, spacing: float = SP, margin: float = 3 * MM) -> Volume:
     """Voxel centre inside the capsule union -> mask on a grid around the tree."""
-    lo, hi = tree.bounds(margin)
-    shape = tuple(int(n) for n in np.ceil((hi - lo) / spacing).astype(int) + 1)
-    aff = np.eye(4)
-    aff[:3, :3] = np.eye(3) * spacing
-    aff[:3, 3] = lo
-    vol = Volume(np.zeros(shape, np.uint8), aff)
-    d, _ = tree.sdf(vol.index_to_world(np.indices(shape).reshape(3, -1).T), band=0.01)
-    return vol.with_data((d.reshape(shape) < 0).astype(np.uint8))
+    return tree.rasterise(spacing, margin, band=0.01)[0]
 
 
 def sdf_of(tree: AirwayTree, spacing: float = SP) -> Volume:

@@ -35,21 +35,14 @@ def small_tree() -> AirwayTree:
 
 
 def grid_for(tree: AirwayTree, spacing, margin=4e-3, lo=None, hi=None) -> Volume:
-    spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
-    if lo is None:
-        lo, hi = tree.bounds(margin)
-    shape = tuple(int(n) for n in np.ceil((np.asarray(hi) - lo) / spacing).astype(int) + 1)
-    aff = np.eye(4)
-    aff[:3, :3] = np.diag(spacing)
-    aff[:3, 3] = lo
-    return Volume(np.zeros(shape, np.uint8), aff)
+    return tree.rasterise(spacing, margin, lo, hi)[0]
 
 
 def true_mask_and_sdf(tree: AirwayTree, grid: Volume) -> tuple[Volume, Volume]:
-    idx = np.indices(grid.shape).reshape(3, -1).T
-    d, _ = tree.sdf(grid.index_to_world(idx), band=0.02)
-    d = d.reshape(grid.shape)
-    return grid.with_data((d < 0).astype(np.uint8)), grid.with_data(d.astype(np.float32))
+    """Ground truth on ``grid`` (made by :func:`grid_for`)."""
+    lo = grid.index_to_world(np.zeros((1, 3)))[0]
+    hi = grid.index_to_world(np.array(grid.shape, float)[None] - 1)[0]
+    return tree.rasterise(grid.spacing, lo=lo, hi=hi)
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,6 @@ from room_pipeline.anatomy.mesh import MeshParams, extract_surface
 from room_pipeline.anatomy.phantom import PhantomParams, grow_tree
 from room_pipeline.anatomy.tree import AirwayTree, Branch
 from room_pipeline.errors import ConfigError
-from room_pipeline.io.volume import Volume
 from room_pipeline.planning.trajectory import TargetInfo, Trajectory, TrajectoryParams, plan_path
 from room_pipeline.robot.actuation import Actuator, CommandSignal, apply_gain, sample_delay
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY, fk
@@ -33,14 +32,10 @@ MM = 1e-3
 def lumen_mesh(tree: AirwayTree, lo, hi, h=1e-3):
     """Closed lumen surface of a capsule tree on a grid box (boundary voxels outside)."""
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    n = np.ceil((hi - lo) / h).astype(int) + 1
-    ii = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
-    d = tree.sdf(lo + ii * h, band=4e-3)[0].reshape(n)
-    d[0], d[-1], d[:, 0], d[:, -1], d[:, :, 0], d[:, :, -1] = h, h, h, h, h, h
-    aff = np.eye(4)
-    aff[:3, :3] *= h
-    aff[:3, 3] = lo
-    return extract_surface(Volume(d.astype(np.float32), aff), MeshParams()).mesh
+    _, sdf = tree.rasterise(h, lo=np.asarray(lo, float), hi=np.asarray(hi, float), band=4e-3)
+    d = sdf.data
+    d[0], d[-1], d[:, 0], d[:, -1], d[:, :, 0], d[:, :, -1] = h, h, h, h, h, h   # close the open ends
+    return extract_surface(sdf, MeshParams()).mesh
 
 
 def tube(length=0.4, radius=4e-3):

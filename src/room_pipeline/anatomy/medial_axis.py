@@ -51,6 +51,7 @@ from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from ..config.params import params_from_dict
 from ..errors import ConfigError, InputError
 from ..io.volume import Volume
 from .centreline import CentrelineGraph, GraphBranch
@@ -108,23 +109,7 @@ class MedialAxisParams:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "MedialAxisParams":
         """Build from a config mapping; unknown keys raise :class:`ConfigError` naming the key."""
-        d = dict(d or {})
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - set(fields))
-        if unknown:
-            raise ConfigError(f"unknown key 'medial_axis.{unknown[0]}' (allowed: {', '.join(fields)})")
-        kw = {}
-        for name, value in d.items():
-            default = fields[name].default
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigError(f"medial_axis.{name}: expected {type(default).__name__}, got {value!r}")
-            if isinstance(default, int):
-                if isinstance(value, float) and not value.is_integer():
-                    raise ConfigError(f"medial_axis.{name}: expected int, got {value!r}")
-                kw[name] = int(value)
-            else:
-                kw[name] = float(value)
-        return cls(**kw)
+        return params_from_dict(cls, d, "medial_axis")
 
 
 @dataclasses.dataclass

@@ -20,11 +20,11 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
+from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import ConfigError, InputError
 from ..io.mesh import Mesh
 from ..io.volume import Volume
-from .sdf import _from_dict
 
 SMOOTHING = ("none", "taubin", "hc_laplacian")
 
@@ -87,7 +87,7 @@ class MeshParams:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "MeshParams":
         """Build from a config mapping; unknown keys raise :class:`ConfigError` naming the key."""
-        return _from_dict(cls, d, "mesh")
+        return params_from_dict(cls, d, "mesh")
 
 
 @dataclasses.dataclass

@@ -32,6 +32,7 @@ from typing import Any, Mapping
 import numpy as np
 from scipy import ndimage
 
+from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import ConfigError, InputError
 from ..io.volume import Volume
@@ -76,40 +77,7 @@ class SdfParams:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "SdfParams":
         """Build from a config mapping; unknown keys raise :class:`ConfigError` naming the key."""
-        return _from_dict(cls, d, "sdf")
-
-
-def _from_dict(cls, d: Mapping[str, Any] | None, section: str):
-    d = dict(d or {})
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - set(fields))
-    if unknown:
-        raise ConfigError(f"unknown key '{section}.{unknown[0]}' (allowed: {', '.join(fields)})")
-    kw = {}
-    for name, value in d.items():
-        default = fields[name].default
-        try:
-            if isinstance(default, bool):
-                if not isinstance(value, bool):
-                    raise TypeError
-                kw[name] = value
-            elif isinstance(default, int) and not isinstance(value, bool):
-                if isinstance(value, float) and not value.is_integer():
-                    raise TypeError
-                kw[name] = int(value)
-            elif isinstance(default, float):
-                if isinstance(value, bool):
-                    raise TypeError
-                kw[name] = float(value)
-            elif isinstance(default, str):
-                if not isinstance(value, str):
-                    raise TypeError
-                kw[name] = value
-            else:
-                kw[name] = value
-        except (TypeError, ValueError):
-            raise ConfigError(f"{section}.{name}: expected {type(default).__name__}, got {value!r}") from None
-    return cls(**kw)
+        return params_from_dict(cls, d, "sdf")
 
 
 # --------------------------------------------------------------------------- helpers

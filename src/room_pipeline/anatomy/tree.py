@@ -20,6 +20,8 @@ from typing import Iterable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..io.volume import Volume
+
 
 @dataclasses.dataclass
 class Branch:
@@ -218,6 +220,26 @@ class AirwayTree:
             _, dist = _segment_closest(foot[mask], b.start, b.end)
             covered[np.nonzero(mask)[0][dist < b.radius - 1e-12]] = True
         return covered
+
+    def rasterise(self, spacing, margin: float = 5e-3, lo=None, hi=None, band: float = 0.02
+                  ) -> tuple[Volume, Volume]:
+        """Ground truth on a grid: (mask uint8: voxel centre inside the lumen, SDF float32 metres).
+
+        The grid spans ``bounds(margin)`` (or ``lo``..``hi``, metres) at ``spacing`` metres (a number or
+        one per axis), axis-aligned in the world frame; SDF values are clipped to ``band``.  For tests and
+        benchmarks on synthetic trees (the phantom has its own faster tiled rasteriser with a CT model).
+        """
+        spacing = np.broadcast_to(np.asarray(spacing, dtype=np.float64), (3,))
+        if lo is None or hi is None:
+            lo, hi = self.bounds(margin)
+        lo = np.asarray(lo, dtype=np.float64)
+        shape = tuple(int(n) for n in np.ceil((np.asarray(hi) - lo) / spacing).astype(int) + 1)
+        aff = np.eye(4)
+        aff[:3, :3] = np.diag(spacing)
+        aff[:3, 3] = lo
+        grid = Volume(np.zeros(shape, np.uint8), aff)
+        d = self.sdf(grid.index_to_world(np.indices(shape).reshape(3, -1).T), band=band)[0].reshape(shape)
+        return grid.with_data((d < 0).astype(np.uint8)), grid.with_data(d.astype(np.float32))
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Boolean: inside the lumen union."""

@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from ..anatomy.centreline import CentrelineGraph
 from ..config.compose import section
+from ..config.params import params_from_dict
 from ..conventions import MM, metadata_block
 from ..errors import ConfigError, InputError
 from ..io.atomic import write_json
@@ -66,11 +67,7 @@ class RenderParams:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "RenderParams":
-        names = {f.name for f in dataclasses.fields(cls)}
-        for k in d:
-            if k not in names:
-                raise ConfigError(f"unknown key 'render.{k}' (known: {', '.join(sorted(names))})")
-        p = cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+        p = params_from_dict(cls, d, "render")
         if p.backend not in ("raycast", "cycles"):
             raise ConfigError(f"render.backend must be 'raycast' or 'cycles', got {p.backend!r}")
         if p.poses not in ("planned", "simulated"):
