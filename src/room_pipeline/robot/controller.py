@@ -9,7 +9,10 @@ so ``fk(q)`` is the tip relative to it.  :func:`room_pipeline.robot.kinematics.i
 (tip position and view direction) is solved in that frame; because the shaft follows a
 curved route, the base frame moves with ``q3``: the solve is repeated with the base
 frame at the new ``q3`` until ``q3`` changes by less than ``q3_tol_m`` (a fixed point,
-2-3 iterations).  The joint command is clamped to the joint limits by ``ik``.
+2-3 iterations).  The joint command is clamped to the joint limits by ``ik``, then
+(:func:`rate_limit`) to the actuators' speed limits: near a straight scope the bending
+plane ``q2`` is ill-conditioned (any ``q2`` fits a target on the axis), and an unlimited
+IK answer can spin the scope by tens of degrees between two frames.
 """
 from __future__ import annotations
 
@@ -20,6 +23,12 @@ import numpy as np
 from .kinematics import ScopeGeometry, ik
 
 BaseFrameFn = Callable[[float], np.ndarray]
+
+
+def rate_limit(q_new: np.ndarray, q_prev: np.ndarray, dt_s: float, max_rate: np.ndarray) -> np.ndarray:
+    """``q_new`` moved at most ``max_rate * dt_s`` (per joint; m/s, rad/s, m/s) away from ``q_prev``."""
+    step = np.clip(np.asarray(q_new, float) - q_prev, -np.asarray(max_rate) * dt_s, np.asarray(max_rate) * dt_s)
+    return np.asarray(q_prev, float) + step
 
 
 def _shift(base_pose: np.ndarray, q3: float) -> np.ndarray:

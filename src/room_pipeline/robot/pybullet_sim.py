@@ -75,7 +75,7 @@ from scipy.spatial import cKDTree
 from ..errors import ConfigError, InputError
 from ..io.mesh import Mesh
 from .actuation import Actuator, CommandSignal, sample_delay
-from .controller import IKController
+from .controller import IKController, rate_limit
 from .kinematics import ScopeGeometry, kappa
 
 INSERTION_MODELS = ("kinematic", "passive")
@@ -91,10 +91,12 @@ class SimParams:
 
     seed: int = 0                           # actuation delay RNG seed
     time_step_s: float = 5e-3               # physics step (largest stable at n_links 10: benchmarks/simulation.py)
-    solver_iterations: int = 50             # Bullet constraint-solver iterations per step
+    solver_iterations: int = 20             # Bullet constraint-solver iterations per step
     n_links: int = 10                       # capsules in the bending segment
     scope_diameter_mm: float = 5.0          # outer diameter (Ambu aScope 4 Regular: 5.0 mm)
     linear_density_kg_m: float = 0.03       # scope mass per length
+    mass_scale: float = 100.0               # simulated mass = physical x this (1 = physical)
+    mass_damping_per_s: float = 10.0        # implicit: extra joint damping alpha * M (mass-proportional), 1/s
     joint_integration: str = "implicit"     # implicit (stable PD) | explicit spring-damper torques
     inertia_factor: float = 0.0             # explicit: link rotational inertia >= factor * joint_damping * time_step_s
     joint_stiffness: float = 2.0e-2         # N m/rad, bending-segment joints
@@ -120,9 +122,14 @@ class SimParams:
     settle_time_s: float = 0.3              # settling before the first frame
     ik_direction_weight_mm: float | None = None  # weight of the view direction in IK (null: l)
     controller_iterations: int = 4
+    mass_matrix_every: int = 10             # implicit: refresh the joint-space mass matrix every n steps
+    max_rate_q1_mm_s: float = 16.0          # actuator rate limits of the command: tendon differential, mm/s
+    max_rate_q2_deg_s: float = 90.0         # axial rotation, deg/s
+    max_rate_q3_mm_s: float = 50.0          # insertion, mm/s
 
     def __post_init__(self) -> None:
-        ints = ("seed", "solver_iterations", "n_links", "passive_shaft_links", "controller_iterations")
+        ints = ("seed", "solver_iterations", "n_links", "passive_shaft_links", "controller_iterations",
+                "mass_matrix_every")
         for name in ints:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or float(v) != int(v):
@@ -150,14 +157,15 @@ class SimParams:
         if self.friction_model not in FRICTION_MODELS:
             raise ConfigError(f"simulate.friction_model must be one of {', '.join(FRICTION_MODELS)}, "
                               f"got {self.friction_model!r}")
-        positive = ("time_step_s", "solver_iterations", "scope_diameter_mm", "linear_density_kg_m",
+        positive = ("time_step_s", "solver_iterations", "scope_diameter_mm", "linear_density_kg_m", "mass_scale",
                     "joint_stiffness", "joint_damping", "contact_stiffness", "passive_shaft_length_mm",
                     "passive_shaft_links", "shaft_bending_stiffness_nm2", "crop_radius_mm", "crop_rebuild_mm",
-                    "controller_iterations")
+                    "controller_iterations", "mass_matrix_every", "max_rate_q1_mm_s", "max_rate_q2_deg_s",
+                    "max_rate_q3_mm_s")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"simulate.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("inertia_factor", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
+        for name in ("inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
                      "delay_max_s", "gain_q1", "gain_q2", "settle_time_s"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"simulate.{name} must be >= 0, got {getattr(self, name)}")
@@ -293,13 +301,13 @@ class Route:
             w = (s - S[i]) / (S[i + 1] - S[i])
             P = (1 - w) * self.P[i] + w * self.P[i + 1]
             t = (1 - w) * self.t[i] + w * self.t[i + 1]
-            t = t / np.linalg.norm(t)
+            t = t / math.sqrt(t @ t)
             x = (1 - w) * self.x[i] + w * self.x[i + 1]
         x = x - (x @ t) * t
-        x = x / np.linalg.norm(x)
+        x = x / math.sqrt(x @ x)
         T = np.eye(4)
         T[:3, 0] = x
-        T[:3, 1] = np.cross(t, x)
+        T[:3, 1] = (t[1] * x[2] - t[2] * x[1], t[2] * x[0] - t[0] * x[2], t[0] * x[1] - t[1] * x[0])
         T[:3, 2] = t
         T[:3, 3] = P
         return T
@@ -357,7 +365,7 @@ class ScopeSim:
         prev_len = 0.0
         for i, L in enumerate(lengths):
             shaft = i < self.n_shaft
-            m = prm.linear_density_kg_m * L
+            m = prm.linear_density_kg_m * prm.mass_scale * L
             I_phys = m * (3 * self.radius ** 2 + L ** 2) / 12.0
             I = max(I_phys, I_shaft if shaft else I_art)
             shape = p.createCollisionShape(p.GEOM_CAPSULE, radius=self.radius, height=L,
@@ -400,6 +408,8 @@ class ScopeSim:
         self.base_pose = np.eye(4)
         self.implicit = prm.joint_integration == "implicit"
         self.dt = prm.time_step_s
+        self._Minv = None
+        self._since_mass = 0
 
     def close(self) -> None:
         if self.cid is not None and self.cid >= 0:
@@ -465,17 +475,25 @@ class ScopeSim:
 
     def step(self, n: int = 1) -> None:
         c, body, joints = self.cid, self.body, self.joints
-        for _ in range(n):
+        for i in range(n):
             js = p.getJointStates(body, joints, physicsClientId=c)
             th = np.fromiter((j[0] for j in js), float, len(joints))
             om = np.fromiter((j[1] for j in js), float, len(joints))
             if self.implicit:
                 # stable PD (Tan, Liu & Turk 2011): spring at theta + dt*omega, damper at the predicted
-                # velocity omega + dt*acc, acc from the joint-space mass matrix (bias and contact ignored)
-                M = np.array(p.calculateMassMatrix(body, th.tolist(), physicsClientId=c))
+                # velocity omega + dt*acc, acc from the joint-space mass matrix (bias and contact ignored).
+                # (M + dt D)^-1 is refreshed every `mass_matrix_every` steps: a LAPACK solve per step cost
+                # more than the physics step itself (OpenBLAS thread start-up on tiny matrices).
+                # Mass-proportional damping alpha*M (mass_damping_per_s) keeps the mass-scaled chain overdamped.
+                if self._Minv is None or self._since_mass >= self.params.mass_matrix_every:
+                    M = np.array(p.calculateMassMatrix(body, th.tolist(), physicsClientId=c))
+                    self._D = np.diag(self.d) + self.params.mass_damping_per_s * M
+                    self._Minv = np.linalg.inv(M + self.dt * self._D)
+                    self._since_mass = 0
+                self._since_mass += 1
                 e = self.k * (self.targets - th - self.dt * om)
-                acc = np.linalg.solve(M + self.dt * np.diag(self.d), e - self.d * om)
-                tau = e - self.d * (om + self.dt * acc)
+                acc = self._Minv @ (e - self._D @ om)
+                tau = e - self._D @ (om + self.dt * acc)
             else:
                 tau = self.k * (self.targets - th) - self.d * om
             p.setJointMotorControlArray(body, joints, p.TORQUE_CONTROL, forces=tau.tolist(), physicsClientId=c)
@@ -695,6 +713,8 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
     act = Actuator(signal, delay, geometry.q1_max, params.gain_q1, params.gain_q2, enabled=params.actuation)
     ctrl = IKController(geometry, None if params.ik_direction_weight_mm is None else params.ik_direction_weight_mm * 1e-3,
                         iterations=params.controller_iterations)
+    max_rate = np.array([params.max_rate_q1_mm_s * 1e-3, math.radians(params.max_rate_q2_deg_s),
+                         params.max_rate_q3_mm_s * 1e-3])
     use_crop = mesh is not None and params.crop_mesh
     face_tree = cKDTree(mesh.vertices[mesh.faces].mean(axis=1)) if use_crop else None
     crop_pts = None
@@ -769,7 +789,8 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
             if np.max(np.linalg.norm(pts - crop_pts, axis=1)) > params.crop_rebuild_mm * 1e-3:
                 load_wall()
         sim.update_friction()
-        qk = ctrl.command(poses[k], signal(ts[k - 1]), base_frame_fn())
+        q_prev = signal(ts[k - 1])
+        qk = rate_limit(ctrl.command(poses[k], q_prev, base_frame_fn()), q_prev, ts[k] - ts[k - 1], max_rate)
         signal.add(ts[k], qk)
         n = max(1, int(round((ts[k] - ts[k - 1]) / dt)))
         h = (ts[k] - ts[k - 1]) / n
