@@ -10,7 +10,10 @@ Writes benchmarks/results/simulation.{json,md}:
   3. a 60 s sequence (phantom airway, kinematic insertion): wall time and realtime factor;
   4. cropped vs full mesh: speed and tip pose difference;
   5. insertion model comparison (kinematic vs passive): tracking error and contact forces;
-  6. tracking error along the default phantom trajectory (median / max, mm and deg).
+  6. tracking error along the default phantom trajectory (median / max, mm and deg);
+  7. mass scaling (with mass-proportional damping) and solver iterations on the pipeline's default
+     sequence (data/output/patient_000/sequence_000, written by `dvc repro`; skipped when absent):
+     stability in contact, tracking, free-space settling, wall and CPU time.
 """
 from __future__ import annotations
 
@@ -65,7 +68,7 @@ def speed_vs_error(quick: bool) -> list[dict]:
     for n in (5, 10, 20):
         for dt in (1e-3, 2e-3, 5e-3, 1e-2):
             prm = SimParams(n_links=n, time_step_s=dt)
-            steps = int(round(0.5 / dt))
+            steps = int(round(1.0 / dt))
             ep, ea, wall = [], [], 0.0
             for q in qs:
                 t0 = time.perf_counter()
@@ -76,9 +79,94 @@ def speed_vs_error(quick: bool) -> list[dict]:
                 ea.append(math.degrees(rot_angle(T, F)))
             stable = bool(np.all(np.isfinite(ep)) and max(ep) < 1.0)
             rows.append({"n_links": n, "time_step_s": dt, "tip_error_mm_max": max(ep), "tip_error_deg_max": max(ea),
-                         "stable": stable, "wall_s_per_sim_s_free": wall / (0.5 * len(qs))})
+                         "stable": stable, "wall_s_per_sim_s_free": wall / (1.0 * len(qs))})
             print(rows[-1], flush=True)
     return rows
+
+
+def pipeline_sequence(quick: bool) -> dict:
+    """Mass scaling, solver iterations and speed on the pipeline's default sequence (if `dvc repro` made it)."""
+    import types
+
+    from room_pipeline.io.mesh import read_obj
+    from room_pipeline.stages.simulate import open_entrance
+
+    root = ROOT / "data" / "output" / "patient_000"
+    meta = root / "sequence_000" / "metadata" / "trajectory.json"
+    if not meta.exists():
+        return {"skipped": f"{meta} absent: run `dvc repro` first"}
+    fr = json.loads(meta.read_text())["frames"]
+    traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),
+                                 poses=np.array([f["pose"] for f in fr]), arclength=np.array([f["arclength"] for f in fr]))
+    graph = json.loads((root / "anatomy" / "centreline_graph.json").read_text())
+    r0 = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
+    mesh, _ = open_entrance(read_obj(root / "anatomy" / "lung_model.obj"), traj.poses[0, :3, 3], traj.poses[0, :3, 2], r0)
+
+    def one(**kw) -> dict:
+        prm = SimParams(**kw)
+        c0 = time.process_time()
+        r = simulate(traj, mesh, prm, G)
+        cpu = time.process_time() - c0
+        rep = r.report
+        q = [G.q1_max, 0.3, 0.02]
+        F = fk(np.array(q), geometry=G)
+        settle = {f"{t:g}": float(np.linalg.norm(settle_free(q, prm, G, steps=int(t / prm.time_step_s))[:3, 3]
+                                                   - F[:3, 3]) / MM) for t in (0.5, 1.0)}
+        row = {**kw, "duration_s": rep["duration_s"], "wall_time_s": rep["wall_time_s"], "cpu_time_s": cpu,
+               "realtime_factor_cpu": rep["duration_s"] / cpu, "tracking_error_mm": rep["tracking_error_mm"],
+               "tracking_error_deg": rep["tracking_error_deg"], "contact_force_n_max": rep["contact_force_n"]["max"],
+               "penetration_mm_max": rep["penetration_mm"]["max"], "free_settle_error_mm": settle,
+               "stable": bool(rep["tracking_error_mm"]["max"] < 10.0 and rep["penetration_mm"]["max"] < 1.0),
+               "tip_poses": r.tip_poses}
+        print("pipeline", {k: v for k, v in row.items() if k != "tip_poses"}, flush=True)
+        return row
+
+    out = {"frames": len(fr), "duration_s": float(traj.timestamps[-1]), "faces": int(mesh.n_faces)}
+    out["defaults"] = one()
+    rows = []
+    for ms, a in ((1.0, 0.0), (10.0, 10.0), (30.0, 10.0), (100.0, 0.0), (100.0, 10.0), (300.0, 10.0)):
+        rows.append(one(mass_scale=ms, mass_damping_per_s=a))
+    out["mass_scaling"] = rows
+    ref = None
+    its = []
+    for n in (50, 20, 10):
+        row = one(solver_iterations=n)
+        ref = row["tip_poses"] if ref is None else ref
+        row["tip_diff_vs_50_mm_max"] = float(np.linalg.norm(row["tip_poses"][:, :3, 3] - ref[:, :3, 3], axis=1).max() / MM)
+        its.append(row)
+    out["solver_iterations"] = its
+    for row in [out["defaults"], *rows, *its]:
+        row.pop("tip_poses")
+    return out
+
+
+def pipeline_markdown(p: dict) -> list[str]:
+    if "skipped" in p:
+        return ["", "## Pipeline default sequence", "", p["skipped"], ""]
+    d = p["defaults"]
+    md = ["", f"## Pipeline default sequence (data/output/patient_000/sequence_000: {p['frames']} frames, "
+          f"{p['duration_s']:.1f} s, {p['faces']} wall triangles)", "",
+          f"Defaults: CPU {d['cpu_time_s']:.2f} s (realtime x{d['realtime_factor_cpu']:.1f} on CPU time), wall "
+          f"{d['wall_time_s']:.2f} s (shared machine); tracking median {d['tracking_error_mm']['median']:.2f} mm / max "
+          f"{d['tracking_error_mm']['max']:.2f} mm, view median {d['tracking_error_deg']['median']:.1f} / max "
+          f"{d['tracking_error_deg']['max']:.1f} deg; max contact force {d['contact_force_n_max']:.3f} N, max "
+          f"penetration {d['penetration_mm_max']:.3f} mm.", "",
+          "### Mass scaling (simulated mass = physical x mass_scale; damping alpha M added, 1/s)", "",
+          "Stable = max tracking error < 10 mm and max penetration < 1 mm (a 5 mm scope in a 7-12 mm lumen).", "",
+          "| mass_scale | alpha (1/s) | stable | max err mm | max force N | max pen mm | free settle err mm @0.5 s / 1 s | CPU s |",
+          "|---|---|---|---|---|---|---|---|"]
+    for r in p["mass_scaling"]:
+        md.append(f"| {r['mass_scale']:g} | {r['mass_damping_per_s']:g} | {r['stable']} | {r['tracking_error_mm']['max']:.2f} "
+                  f"| {r['contact_force_n_max']:.3f} | {r['penetration_mm_max']:.3f} | "
+                  f"{r['free_settle_error_mm']['0.5']:.3f} / {r['free_settle_error_mm']['1']:.3f} | {r['cpu_time_s']:.2f} |")
+    md += ["", "### Solver iterations (defaults otherwise)", "",
+           "| iterations | stable | max err mm | max force N | max pen mm | tip diff vs 50 (mm, max) | CPU s | realtime x (CPU) |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in p["solver_iterations"]:
+        md.append(f"| {r['solver_iterations']} | {r['stable']} | {r['tracking_error_mm']['max']:.2f} | "
+                  f"{r['contact_force_n_max']:.3f} | {r['penetration_mm_max']:.3f} | {r['tip_diff_vs_50_mm_max']:.3f} | "
+                  f"{r['cpu_time_s']:.2f} | {r['realtime_factor_cpu']:.1f} |")
+    return md + [""]
 
 
 def main() -> None:
@@ -125,13 +213,14 @@ def main() -> None:
 
     # crop vs full mesh
     r_full, rep_full = run(SimParams(crop_mesh=False))
-    dp = np.linalg.norm(r_full.tip_poses[:, :3, 3] - r_def.tip_poses[:, :3, 3], axis=1) / MM
-    da = np.degrees([rot_angle(a, b) for a, b in zip(r_full.tip_poses, r_def.tip_poses)])
-    out["crop_vs_full"] = {"faces_full": mesh.n_faces, "faces_cropped_mean": rep_def["mesh"]["faces_loaded_mean"],
-                           "crop_builds": rep_def["mesh"]["builds"],
-                           "wall_s_cropped": rep_def["wall_time_s"], "wall_s_full": rep_full["wall_time_s"],
+    r_crop, rep_crop = run(SimParams(crop_mesh=True))
+    dp = np.linalg.norm(r_full.tip_poses[:, :3, 3] - r_crop.tip_poses[:, :3, 3], axis=1) / MM
+    da = np.degrees([rot_angle(a, b) for a, b in zip(r_full.tip_poses, r_crop.tip_poses)])
+    out["crop_vs_full"] = {"faces_full": mesh.n_faces, "faces_cropped_mean": rep_crop["mesh"]["faces_loaded_mean"],
+                           "crop_builds": rep_crop["mesh"]["builds"],
+                           "wall_s_cropped": rep_crop["wall_time_s"], "wall_s_full": rep_full["wall_time_s"],
                            "tip_position_diff_mm_max": float(dp.max()), "tip_angle_diff_deg_max": float(da.max()),
-                           "identical": bool(r_full.tip_poses.tobytes() == r_def.tip_poses.tobytes())}
+                           "identical": bool(r_full.tip_poses.tobytes() == r_crop.tip_poses.tobytes())}
     print("crop", json.dumps(out["crop_vs_full"]), flush=True)
 
     # insertion models, without actuation noise (isolates the shaft model) and with it
@@ -153,6 +242,7 @@ def main() -> None:
         iw.append({"ik_direction_weight_mm": w, "tracking_error_mm": rep["tracking_error_mm"],
                    "tracking_error_deg": rep["tracking_error_deg"]})
     out["ik_direction_weight"] = iw
+    out["pipeline_sequence"] = pipeline_sequence(quick)
     out["machine"]["loadavg_end"] = os.getloadavg()
 
     res = ROOT / "benchmarks" / "results"
@@ -161,7 +251,7 @@ def main() -> None:
     md = ["# Scope simulation benchmark (benchmarks/simulation.py)", "",
           f"2 shared CPU cores, load average {out['machine']['loadavg_start'][0]:.1f} at start, "
           f"{out['machine']['loadavg_end'][0]:.1f} at end (timings are noisy).", "",
-          "## Speed vs error (free space, from straight, settled 0.5 s; worst of 3 q incl. full bend)", "",
+          "## Speed vs error (free space, from straight, settled 1 s; worst of 3 q incl. full bend)", "",
           "| n_links | dt (s) | tip error (mm) | angle (deg) | stable | wall s per sim s (free) |", "|---|---|---|---|---|---|"]
     for r in out["speed_vs_error"]:
         md.append(f"| {r['n_links']} | {r['time_step_s']:g} | {r['tip_error_mm_max']:.3f} | {r['tip_error_deg_max']:.3f} "
@@ -196,6 +286,7 @@ def main() -> None:
            f"median {d['tracking_error_mm']['median']:.2f} mm, max {d['tracking_error_mm']['max']:.2f} mm; "
            f"median {d['tracking_error_deg']['median']:.1f} deg, max {d['tracking_error_deg']['max']:.1f} deg; "
            f"realtime x{d['realtime_factor']:.1f}", ""]
+    md += pipeline_markdown(out["pipeline_sequence"])
     (res / "simulation.md").write_text("\n".join(md))
     print("\n".join(md))
 

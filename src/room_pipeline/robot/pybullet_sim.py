@@ -91,7 +91,7 @@ class SimParams:
 
     seed: int = 0                           # actuation delay RNG seed
     time_step_s: float = 5e-3               # physics step (largest stable at n_links 10: benchmarks/simulation.py)
-    solver_iterations: int = 20             # Bullet constraint-solver iterations per step
+    solver_iterations: int = 10             # Bullet constraint-solver iterations per step
     n_links: int = 10                       # capsules in the bending segment
     scope_diameter_mm: float = 5.0          # outer diameter (Ambu aScope 4 Regular: 5.0 mm)
     linear_density_kg_m: float = 0.03       # scope mass per length
@@ -121,7 +121,7 @@ class SimParams:
     crop_rebuild_mm: float = 3.0
     settle_time_s: float = 0.3              # settling before the first frame
     ik_direction_weight_mm: float | None = None  # weight of the view direction in IK (null: l)
-    controller_iterations: int = 4
+    controller_iterations: int = 2
     mass_matrix_every: int = 10             # implicit: refresh the joint-space mass matrix every n steps
     max_rate_q1_mm_s: float = 16.0          # actuator rate limits of the command: tendon differential, mm/s
     max_rate_q2_deg_s: float = 90.0         # axial rotation, deg/s
@@ -457,6 +457,9 @@ class ScopeSim:
 
     def set_bend(self, q1: float) -> None:
         """Joint targets of the bending segment for tendon differential ``q1`` (in its rolled base)."""
+        if q1 == getattr(self, "_q1_targets", None):
+            return
+        self._q1_targets = q1
         phi = float(kappa(q1, self.geometry)) * self.ds
         t = np.zeros(len(self.joints))
         first = 2 * self.n_shaft
