@@ -74,6 +74,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import ConfigError, InputError
 from ..io.mesh import Mesh
+from ..progress import progress
 from .actuation import Actuator, CommandSignal, sample_delay
 from .controller import IKController, rate_limit
 from .kinematics import ScopeGeometry, kappa
@@ -786,7 +787,7 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
 
     record(0, 0.0)
     t_now = 0.0
-    for k in range(1, T):
+    for k in progress(range(1, T), T - 1, "simulate"):
         if use_crop:
             pts = sim.sample_points()
             if np.max(np.linalg.norm(pts - crop_pts, axis=1)) > params.crop_rebuild_mm * 1e-3:

@@ -32,6 +32,7 @@ from ..io.atomic import write_json
 from ..io.images import write_exr, write_flo, write_png8, write_png16
 from ..io.mesh import Mesh, read_obj
 from ..render.camera import CameraIntrinsics
+from ..progress import progress
 from ..render.scene import Film, Scene, TipLight, TissueMaterial
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 from .trajectory import split_key
@@ -176,7 +177,7 @@ def run(cfg: DictConfig, key: str) -> dict:
         for folder in FOLDERS.values():
             (seq / folder).mkdir(parents=True, exist_ok=True)
         frames, n_valid_flow, n_hit = [], [], []
-        for i in range(len(src)):
+        for i in progress(range(len(src)), len(src), f"render {key}"):
             out = renderer.render(i, mods)
             name = f"frame_{i:04d}"
             hit = out["hit"]
