@@ -1,0 +1,201 @@
+"""Stage `evaluate_pose`: one rendered sequence -> multi-view pose accuracy of each configured method (Table I).
+
+Reads ``<patient>/<sequence>/``: the frames (``rgb_noisy/`` when
+``evaluate.pose.images`` is ``noisy`` and the noise stage wrote it, else
+``rgb/``), the ground-truth camera-to-world poses (``metadata/render.json``)
+and the intrinsics (``calibration/camera_params.json``).  Optional frame
+stride, frame cap and image downscale (K scaled to match) keep it fast.
+
+Writes ``<patient>/<sequence>/evaluation/pose.json`` -- per method: available
+/ reason, RRA@5, RTA@5, AUC@30 (fractions of frame pairs), registration rate,
+ATE after Sim(3) alignment (mm), wall time -- and
+``evaluation/pose_errors.csv`` (one row per frame, one column group per method:
+registered, position / orientation error after alignment, error of the step
+from the previous frame) for ``dvc plots``; DVC metrics in
+``metrics/evaluate_pose_<sequence>.json``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+from omegaconf import DictConfig
+
+from ..config.compose import section
+from ..config.params import params_from_dict
+from ..errors import ConfigError, InputError
+from ..evaluate import pose_methods as pm
+from ..evaluate.pose_metrics import per_frame_errors, pose_metrics
+from ..io.atomic import write_json, write_text
+from ..io.images import read_png
+from ..render.camera import CameraIntrinsics
+from .common import StageTimer, _finite, metadata, patient_paths, read_json, round_floats, write_metrics
+from .trajectory import split_key
+
+#: per-frame curves written to pose_errors.csv (column suffixes)
+CURVES = ("position_error_mm", "orientation_error_deg", "step_rotation_error_deg", "step_translation_error_deg")
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseEvalParams:
+    """Keys of ``evaluate.pose`` in ``conf/evaluate/default.yaml`` (see its comments for units)."""
+
+    methods: tuple = ("colmap", "orb_vo", "dust3r", "vggt")
+    images: str = "noisy"
+    frame_stride: int = 1
+    max_frames: int | None = None
+    downscale: float = 2.0
+    seed: int = 0
+    rra_threshold_deg: float = 5.0
+    auc_max_deg: int = 30
+    colmap: Mapping[str, Any] | None = None
+    orb: Mapping[str, Any] | None = None
+    weights: Mapping[str, Any] | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> "PoseEvalParams":
+        p = params_from_dict(cls, d, "evaluate.pose")
+        if p.images not in ("noisy", "clean"):
+            raise ConfigError(f"evaluate.pose.images must be 'noisy' or 'clean', got {p.images!r}")
+        if p.frame_stride < 1 or p.downscale < 1.0 or p.auc_max_deg < 1 or p.rra_threshold_deg <= 0:
+            raise ConfigError("evaluate.pose: frame_stride >= 1, downscale >= 1, auc_max_deg >= 1 and "
+                              "rra_threshold_deg > 0 required")
+        if p.max_frames is not None and (isinstance(p.max_frames, bool) or not isinstance(p.max_frames, int)
+                                         or p.max_frames < 2):
+            raise ConfigError(f"evaluate.pose.max_frames must be null or an integer >= 2, got {p.max_frames!r}")
+        if not p.methods:
+            raise ConfigError("evaluate.pose.methods is empty")
+        for name in p.methods:
+            pm.get_method(str(name))
+        return p
+
+    def method_params(self) -> pm.PoseMethodParams:
+        weights = dict(self.weights or {})
+        unknown = sorted(set(weights) - set(pm.METHODS))
+        if unknown:
+            raise ConfigError(f"evaluate.pose.weights: unknown method '{unknown[0]}'")
+        return pm.PoseMethodParams(seed=self.seed, colmap=pm.ColmapParams.from_dict(self.colmap),
+                                   orb=pm.OrbParams.from_dict(self.orb), weights=weights)
+
+
+def outputs(cfg: DictConfig, key: str) -> list:
+    patient, sequence = split_key(key)
+    seq = patient_paths(cfg, patient).sequence(sequence)
+    return [seq / "evaluation" / "pose.json", seq / "evaluation" / "pose_errors.csv"]
+
+
+def image_dir(seq: Path, which: str) -> Path:
+    """``rgb_noisy/`` when asked for and present, else ``rgb/``."""
+    if which == "noisy" and (seq / "rgb_noisy").is_dir() and any((seq / "rgb_noisy").glob("frame_*.png")):
+        return seq / "rgb_noisy"
+    return seq / "rgb"
+
+
+def load_sequence(seq: Path, p: PoseEvalParams) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, dict]:
+    """(images RGB uint8, K (downscaled), ground-truth c2w poses, provenance) of the selected frames."""
+    render_json = seq / "metadata" / "render.json"
+    calib_json = seq / "calibration" / "camera_params.json"
+    for f in (render_json, calib_json):
+        if not f.is_file():
+            raise InputError(f"{f} not found (run the render stage first)")
+    frames = read_json(render_json).get("frames") or []
+    cam = CameraIntrinsics.from_dict(read_json(calib_json))
+    src = image_dir(seq, p.images)
+    sel = np.arange(0, len(frames), p.frame_stride)
+    if p.max_frames is not None:
+        sel = sel[: p.max_frames]
+    if len(sel) < 2:
+        raise InputError(f"{render_json}: {len(frames)} frames, stride {p.frame_stride}: pose evaluation needs >= 2")
+    images, poses = [], []
+    for k in sel:
+        f = frames[int(k)]
+        path = src / f"frame_{int(f['index']):04d}.png"
+        im = read_png(path)
+        if im.dtype != np.uint8:
+            raise InputError(f"{path}: expected an 8-bit image, got {im.dtype}")
+        if im.ndim == 2:
+            im = np.repeat(im[..., None], 3, axis=2)
+        images.append(np.ascontiguousarray(im[..., :3]))
+        poses.append(np.asarray(f["pose"], dtype=np.float64))
+    h, w = images[0].shape[:2]
+    if (w, h) != (cam.width, cam.height):
+        raise InputError(f"{src}: images are {w}x{h} but {calib_json} says {cam.width}x{cam.height}")
+    images, K = pm.downscale(images, cam.K, p.downscale)
+    info = {"image_dir": src.name, "frames": [int(k) for k in sel], "n_frames": len(sel),
+            "image_size": [int(images[0].shape[1]), int(images[0].shape[0])], "downscale": p.downscale,
+            "K": np.round(K, 9).tolist()}
+    return images, K, np.stack(poses), info
+
+
+def evaluate_methods(images: list[np.ndarray], K: np.ndarray, poses_gt: np.ndarray, p: PoseEvalParams
+                     ) -> tuple[dict, dict]:
+    """Run every configured method: ({name: result record}, {name: per-frame curves}) -- unavailable ones too."""
+    mp = p.method_params()
+    results, curves = {}, {}
+    for name in p.methods:
+        method = pm.get_method(str(name))
+        ok, reason = method.availability(mp)
+        if not ok:
+            results[name] = {"available": False, "reason": reason}
+            continue
+        res = method.estimate(images, K, mp)
+        m = pose_metrics(poses_gt, res.poses_c2w, res.registered, p.rra_threshold_deg, p.auc_max_deg)
+        results[name] = {"available": True, "reason": None, **m, "seconds": res.seconds,
+                         "seconds_per_frame": res.seconds / len(images), "info": res.info}
+        curves[name] = per_frame_errors(poses_gt, res.poses_c2w, res.registered)
+    return results, curves
+
+
+def errors_csv(frames: list[int], curves: Mapping[str, dict]) -> str:
+    """Per-frame CSV: frame, source frame, then ``<method>_registered`` and ``<method>_<curve>``; empty = undefined."""
+    cols = ["frame", "source_frame"]
+    for name in curves:
+        cols += [f"{name}_registered"] + [f"{name}_{c}" for c in CURVES]
+    out = io.StringIO()
+    out.write(",".join(cols) + "\n")
+    for k, src in enumerate(frames):
+        row = [str(k), str(src)]
+        for c in curves.values():
+            row.append("1" if c["registered"][k] else "0")
+            for name in CURVES:
+                v = float(c[name][k])
+                row.append(f"{v:.6f}" if math.isfinite(v) else "")
+        out.write(",".join(row) + "\n")
+    return out.getvalue()
+
+
+UNITS = {"RRA@tau / RTA@tau / AUC@T / registration_rate": "fractions in [0, 1] (the tables print %)",
+         "rotation / translation errors": "degrees; translation = angle between relative translation directions, "
+                                          "sign folded min(a, 180 - a)",
+         "ate_rmse_mm": "mm, RMS camera-centre error after Sim(3) (Umeyama) alignment of the registered frames",
+         "seconds": "wall time of the method on this machine (s)", "seconds_per_frame": "s per input frame"}
+
+
+def run(cfg: DictConfig, key: str) -> dict:
+    patient, sequence = split_key(key)
+    p = PoseEvalParams.from_dict((section(cfg, "evaluate") or {}).get("pose"))
+    paths = patient_paths(cfg, patient)
+    seq = paths.sequence(sequence)
+    with StageTimer() as timer:
+        images, K, poses_gt, info = load_sequence(seq, p)
+        results, curves = evaluate_methods(images, K, poses_gt, p)
+    tau, T = f"{p.rra_threshold_deg:g}", int(p.auc_max_deg)
+    write_json(seq / "evaluation" / "pose.json", _finite(round_floats({
+        "methods": results, "input": info, "units": UNITS,
+        "protocol": f"all {len(images) * (len(images) - 1) // 2} frame pairs i<j; RRA@{tau}/RTA@{tau}: share of "
+                    f"pairs under {tau} deg; AUC@{T}: mean over 1..{T} deg thresholds of the share of pairs with "
+                    f"max(rot, trans) error under the threshold; pairs with an unregistered frame count 180 deg",
+        "metadata": metadata("evaluate_pose", patient, cfg, ("evaluate",), sequence=sequence)}, 6)))
+    write_text(seq / "evaluation" / "pose_errors.csv", errors_csv(info["frames"], curves))
+    keys = (f"RRA@{tau}", f"RTA@{tau}", f"AUC@{T}", "registration_rate", "ate_rmse_mm", "seconds_per_frame")
+    metrics: dict[str, Any] = {"frames": len(images), "wall_time_s": round(timer.wall_s, 3),
+                               "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
+    for name, r in results.items():
+        if r["available"]:
+            metrics[name] = {k: round(float(r[k]), 6) for k in keys}
+    write_metrics(paths, f"evaluate_pose_{sequence}", metrics)
+    return metrics
