@@ -52,6 +52,13 @@ of both surfaces (accumulated over samples), the geometric flow is that of
 the surface at the pixel centre -- the dataset should write the geometric one
 (it matches depth, which is per pixel centre) with its validity mask.
 
+Texture: a textured :class:`Scene` (``material.texture``) carries a per-vertex
+albedo (:meth:`Scene.vertex_albedo`); it goes on the mesh as a linear
+``FLOAT_COLOR`` attribute in the POINT domain (``ALBEDO_ATTRIBUTE``), which an
+Attribute node feeds to the Principled BSDF's Base Color.  Cycles interpolates
+POINT-domain attributes barycentrically across each triangle, like the ray
+caster, so both backends see the same albedo at every surface point.
+
 Camera: a Blender camera looks down its local -z with +y up, the OpenCV camera
 down +z with y down, so the Blender camera-to-world matrix is
 ``pose @ diag(1, -1, -1, 1)``.  Intrinsics: sensor fit 'HORIZONTAL', lens =
@@ -82,6 +89,9 @@ MODALITIES = ("rgb", "depth", "normals", "flow")
 
 #: OpenCV camera axes -> Blender camera axes (and back: it is its own inverse).
 CV_TO_BLENDER = np.diag([1.0, -1.0, -1.0, 1.0])
+
+#: Name of the mesh colour attribute holding the texture's per-vertex albedo (linear RGB).
+ALBEDO_ATTRIBUTE = "mucosa_albedo"
 
 #: Cycles writes this (1e10) in the Depth pass where a ray escapes.
 _NO_HIT_DEPTH = 1e9
@@ -254,6 +264,15 @@ class CyclesRenderer:
             me.shade_smooth()
         else:
             me.shade_flat()
+        va = sc.vertex_albedo()
+        if va is not None:  # the texture, baked per vertex: a linear float colour attribute (POINT domain)
+            if len(va) != len(me.vertices):
+                raise RuntimeError(f"Blender mesh has {len(me.vertices)} vertices, vertex albedo {len(va)}")
+            attr = me.color_attributes.new(ALBEDO_ATTRIBUTE, "FLOAT_COLOR", "POINT")
+            rgba = np.ones((len(va), 4), dtype=np.float32)
+            rgba[:, :3] = va
+            attr.data.foreach_set("color", rgba.ravel())
+            me.update()
         obj = bpy.data.objects.new("lumen", me)
         bs.collection.objects.link(obj)
         obj.data.materials.append(self._material(bpy))
@@ -378,6 +397,11 @@ class CyclesRenderer:
             out = nt.nodes.get("Material Output") or nt.nodes.new("ShaderNodeOutputMaterial")
             nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
         bsdf.inputs["Base Color"].default_value = (*[float(x) for x in m.base_color], 1.0)
+        if self.scene.vertex_albedo() is not None:  # textured: Base Color <- the per-vertex albedo attribute
+            attr = nt.nodes.new("ShaderNodeAttribute")
+            attr.attribute_type = "GEOMETRY"
+            attr.attribute_name = ALBEDO_ATTRIBUTE
+            nt.links.new(attr.outputs["Color"], bsdf.inputs["Base Color"])
         bsdf.inputs["Roughness"].default_value = float(m.roughness)
         bsdf.inputs["Specular IOR Level"].default_value = float(m.specular)
         bsdf.inputs["Metallic"].default_value = 0.0

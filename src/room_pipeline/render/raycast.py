@@ -43,7 +43,9 @@ Outputs of :meth:`RaycastRenderer.render` (always ``hit``: (H, W) bool)
                        uint8 when ``rgb`` is rendered too.  z equals ``depth``
                        at the pixel, so the cloud re-projects onto the depth
                        map (:func:`write_point_cloud` writes the PLY).
-    ``rgb``            (H, W, 3) uint8 sRGB (:mod:`room_pipeline.render.shading`);
+    ``rgb``            (H, W, 3) uint8 sRGB (:mod:`room_pipeline.render.shading`;
+                       a textured material's per-vertex albedo is interpolated
+                       barycentrically at the hit, :meth:`RaycastRenderer.albedo`);
                        ``rgb_linear`` (H, W, 3) float32 linear radiance x 2^EV
                        (before clipping); black where no hit.
     ``flow``           (H, W, 2) float32 forward flow t -> t+1 and ``flow_valid``
@@ -143,6 +145,14 @@ class RaycastRenderer:
         len2 = np.einsum("hwi,hwi->hw", self.rays, self.rays)
         self._ray_len2 = len2.astype(np.float32)
         self._inv_ray_len = (1.0 / np.sqrt(len2)).astype(np.float32)
+        va = scene.vertex_albedo()
+        if va is not None and len(va) != mesh.n_vertices:
+            raise ValueError(f"vertex_albedo has {len(va)} rows for {mesh.n_vertices} vertices")
+        self._albedo_tab: np.ndarray | None = None
+        if va is not None:                      # per-face corner albedo, components first; column F = no hit
+            tab = np.zeros((9, mesh.n_faces + 1), dtype=np.float32)
+            tab[:, :-1] = np.asarray(va, dtype=np.float32)[mesh.faces].reshape(-1, 9).T
+            self._albedo_tab = tab
         self._face_normals: np.ndarray | None = None
         self._corner_normals: np.ndarray | None = None
         vv, uu = np.mgrid[0:cam.height, 0:cam.width]
@@ -298,14 +308,37 @@ class RaycastRenderer:
             self._exposure_ev = auto_exposure_ev(lin, c.hit, film)
         return self._exposure_ev
 
+    def albedo(self, c: Cast) -> np.ndarray | None:
+        """Per-pixel linear RGB albedo (H, W, 3) float32 of a textured scene (None when untextured).
+
+        The vertex albedo (:meth:`Scene.vertex_albedo`) interpolated with the
+        hit's barycentrics: ``(1-u-v) a0 + u a1 + v a2`` (Open3D's
+        ``primitive_uvs``); 0 where no hit.
+        """
+        tab = self._albedo_tab
+        if tab is None:
+            return None
+        prim = np.where(c.hit, c.prim, np.uint32(tab.shape[1] - 1)).astype(np.intp).reshape(-1)
+        uv = c.uv.reshape(-1, 2)
+        a, b = uv[:, 0], uv[:, 1]
+        w0 = 1 - a - b
+        out = np.empty((len(prim), 3), dtype=np.float32)
+        for j in range(3):
+            col = tab[j].take(prim) * w0
+            col += tab[3 + j].take(prim) * a
+            col += tab[6 + j].take(prim) * b
+            out[:, j] = col
+        return out.reshape(c.depth.shape + (3,))
+
     def _linear(self, i: int, c: Cast, normals: np.ndarray, n_dot_ray: np.ndarray) -> np.ndarray:
         light = self.scene.light
+        alb = self.albedo(c)
         if np.any(np.asarray(light.offset_m) != 0):
-            return shade_linear(self.camera_points(c), normals, c.hit, self.scene.material, light)
+            return shade_linear(self.camera_points(c), normals, c.hit, self.scene.material, light, alb)
         # light at the camera: cos = -(n . ray) / |ray|, distance^2 = depth^2 |ray|^2
         cos = -n_dot_ray * self._inv_ray_len
         d2 = c.depth * c.depth * self._ray_len2
-        return shade_coaxial(cos, d2, c.hit, self.scene.material, light)
+        return shade_coaxial(cos, d2, c.hit, self.scene.material, light, alb)
 
     # ------------------------------------------------------------------ render
     def render(self, frame_index: int, modalities: Iterable[str] = ("rgb", "depth")) -> dict[str, np.ndarray]:
@@ -408,6 +441,7 @@ class RaycastRenderer:
         return {"backend": "open3d_raycast", "config": dataclasses.asdict(self.config),
                 "exposure_ev": self.exposure_ev, "film": dataclasses.asdict(sc.film),
                 "material": dataclasses.asdict(sc.material), "light": dataclasses.asdict(sc.light),
+                "texture": "per-vertex albedo interpolated barycentrically" if self._albedo_tab is not None else None,
                 "shading": "single bounce: Lambert (1 - F) base/pi + GGX/Smith/Schlick specular, point light at "
                            "the camera, I = P/(4 pi), inverse-square; no indirect light, no subsurface",
                 "camera": sc.camera.to_dict(), "conventions": metadata_block()}

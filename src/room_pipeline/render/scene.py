@@ -12,6 +12,7 @@ import numpy as np
 
 from ..io.mesh import Mesh
 from .camera import CameraIntrinsics
+from .texture import MucosaTexture, mucosa_albedo
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,6 +29,7 @@ class TissueMaterial:
     specular: float = 0.5
     subsurface_weight: float = 0.0
     subsurface_radius_m: tuple[float, float, float] = (1.0e-3, 0.4e-3, 0.25e-3)
+    texture: MucosaTexture | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +86,26 @@ class Scene:
     light: TipLight = TipLight()
     face_labels: np.ndarray | None = None
     film: Film = Film()
+    _albedo_cache: tuple | None = dataclasses.field(default=None, init=False, repr=False, compare=False)
+
+    def vertex_albedo(self) -> np.ndarray | None:
+        """Per-vertex linear RGB albedo (V, 3) float32 from ``material.texture``, or None when untextured.
+
+        The one place the texture is evaluated (both backends read it):
+        :func:`~room_pipeline.render.texture.mucosa_albedo` at the mesh
+        vertices (world metres) with ``material.base_color`` as the mean;
+        computed once and cached (keyed on the material and the vertex array).
+        Detail below the vertex spacing is not represented.
+        """
+        tex = self.material.texture
+        if tex is None or not tex.enabled:
+            return None
+        key = (self.material, id(self.mesh.vertices), len(self.mesh.vertices))
+        if self._albedo_cache is None or self._albedo_cache[0] != key:
+            alb = mucosa_albedo(self.mesh.vertices, tex, base_color=self.material.base_color)
+            alb.setflags(write=False)
+            self._albedo_cache = (key, alb)
+        return self._albedo_cache[1]
 
     def __post_init__(self) -> None:
         self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)

@@ -14,7 +14,8 @@ Light
     shadow rays.
 
 BRDF (dielectric Principled BSDF, metallic 0, no transmission / clearcoat / sheen)
-    ``f = (1 - F) base_color / pi  +  D G F / (4 (n.l) (n.v))``, with
+    ``f = (1 - F) base_color / pi  +  D G F / (4 (n.l) (n.v))`` (``base_color``
+    replaced per pixel by a texture's albedo when one is given), with
     GGX distribution ``D = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2)``,
     ``a = roughness^2`` (Blender's remapping), Smith-GGX masking-shadowing in
     the separable Schlick form ``G = G1(n.l) G1(n.v)``, ``G1(x) = x / (x (1 - k) + k)``,
@@ -47,7 +48,8 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 VIEW_TRANSFORMS = ("standard",)
 
 
-def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLight) -> np.ndarray:
+def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLight,
+              albedo: np.ndarray | None = None) -> np.ndarray:
     """The BRDF times the irradiance, from per-pixel cosines and squared light distance (float32)."""
     f32 = np.float32
     nl = np.clip(nl, 0.0, 1.0, dtype=f32)
@@ -70,8 +72,11 @@ def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLigh
     vis = f32(0.25) / ((nl * (1 - k) + k) * (nv * (1 - k) + k))
     ks = (D * vis * fres) * irradiance                                          # white specular lobe
     kd = (1 - fres) * irradiance
-    base = np.asarray(material.base_color, dtype=f32) / f32(math.pi)
-    out = kd[..., None] * base
+    if albedo is None:
+        base = np.asarray(material.base_color, dtype=f32) / f32(math.pi)
+        out = kd[..., None] * base
+    else:                                                                      # per-pixel albedo (texture)
+        out = (kd * f32(1 / math.pi))[..., None] * np.asarray(albedo, dtype=f32)
     out += ks[..., None]
     if mask is not None:
         out *= np.asarray(mask, dtype=f32)[..., None]
@@ -79,12 +84,14 @@ def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLigh
 
 
 def shade_linear(points_cam: np.ndarray, normals_cam: np.ndarray, mask: np.ndarray | None,
-                 material: TissueMaterial, light: TipLight) -> np.ndarray:
+                 material: TissueMaterial, light: TipLight, albedo: np.ndarray | None = None) -> np.ndarray:
     """Outgoing radiance (linear RGB, float32, (..., 3)) towards the camera.
 
     ``points_cam``: (..., 3) surface points in the camera frame (metres);
     ``normals_cam``: (..., 3) unit normals facing the camera; ``mask``: where
-    there is a surface (elsewhere the result is 0); float32 throughout.
+    there is a surface (elsewhere the result is 0); ``albedo``: optional
+    per-pixel linear RGB albedo (..., 3) replacing ``material.base_color``
+    in the diffuse term (a texture); float32 throughout.
     """
     f32 = np.float32
     p = np.asarray(points_cam, dtype=f32)
@@ -98,19 +105,20 @@ def shade_linear(points_cam: np.ndarray, normals_cam: np.ndarray, mask: np.ndarr
     l = lv * (1.0 / np.sqrt(np.maximum(r2, f32(1e-30))))[..., None]            # towards the light
     hv = l + v
     h = hv * (1.0 / np.sqrt(np.maximum(dot(hv, hv), f32(1e-30))))[..., None]
-    return _radiance(dot(n, l), dot(n, v), dot(n, h), dot(v, h), r2, mask, material, light)
+    return _radiance(dot(n, l), dot(n, v), dot(n, h), dot(v, h), r2, mask, material, light, albedo)
 
 
 def shade_coaxial(cos_nv: np.ndarray, dist2: np.ndarray, mask: np.ndarray | None,
-                  material: TissueMaterial, light: TipLight) -> np.ndarray:
+                  material: TissueMaterial, light: TipLight, albedo: np.ndarray | None = None) -> np.ndarray:
     """:func:`shade_linear` for a light at the camera centre (``offset_m`` = 0): then l = v = h.
 
     ``cos_nv``: (...) cosine between the normal and the direction to the
-    camera; ``dist2``: squared distance to the camera (m^2).  Fewer operations
+    camera; ``dist2``: squared distance to the camera (m^2); ``albedo`` as
+    in :func:`shade_linear`.  Fewer operations
     on per-pixel scalars (the renderer's fast path); same values up to float32 rounding.
     """
     c = np.asarray(cos_nv, dtype=np.float32)
-    return _radiance(c, c, c, None, np.asarray(dist2, dtype=np.float32), mask, material, light)
+    return _radiance(c, c, c, None, np.asarray(dist2, dtype=np.float32), mask, material, light, albedo)
 
 
 def luminance(linear_rgb: np.ndarray) -> np.ndarray:

@@ -34,6 +34,7 @@ from ..io.mesh import Mesh, read_obj
 from ..render.camera import CameraIntrinsics
 from ..progress import progress
 from ..render.scene import Film, Scene, TipLight, TissueMaterial
+from ..render.texture import MucosaTexture
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 from .trajectory import split_key
 
@@ -63,6 +64,7 @@ class RenderParams:
     light_radius_mm: float = 0.5
     exposure_ev: float | None = None
     auto_exposure_target: float = 0.8
+    texture: dict = dataclasses.field(default_factory=dict)
     cycles_samples: int = 16
     cycles_denoise: bool = True
 
@@ -78,7 +80,18 @@ class RenderParams:
             raise ConfigError(f"render.modalities: unknown {sorted(bad)} (known: {sorted(FOLDERS)})")
         if p.frame_stride < 1 or p.width < 8 or p.height < 8 or not 1.0 < p.fov_deg < 170.0:
             raise ConfigError("render: frame_stride >= 1, width/height >= 8 and 1 < fov_deg < 170 required")
+        texture_params(p.texture)
         return p
+
+
+def texture_params(d: Mapping[str, Any] | None) -> MucosaTexture:
+    """The ``render.texture`` section as a :class:`MucosaTexture` (unknown key or bad value: ConfigError)."""
+    if d is not None and not isinstance(d, Mapping):
+        raise ConfigError(f"render.texture must be a mapping, got {d!r}")
+    try:
+        return params_from_dict(MucosaTexture, d, "render.texture")
+    except ValueError as e:
+        raise ConfigError(str(e).splitlines()[0]) from None
 
 
 def outputs(cfg: DictConfig, key: str) -> list:
@@ -169,7 +182,7 @@ def run(cfg: DictConfig, key: str) -> dict:
         cam = CameraIntrinsics.from_fov(p.width, p.height, p.fov_deg, p.near_mm * MM, p.far_mm * MM)
         scene = Scene(mesh, cam, poses[src], ts[src],
                       material=TissueMaterial(base_color=tuple(p.base_color), roughness=p.roughness,
-                                              specular=p.specular),
+                                              specular=p.specular, texture=texture_params(p.texture)),
                       light=TipLight(power_w=p.light_power_w, radius_m=p.light_radius_mm * MM),
                       film=Film(exposure_ev=p.exposure_ev, auto_target=p.auto_exposure_target), face_labels=labels)
         renderer = _Renderers(scene, p)
