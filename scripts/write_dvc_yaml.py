@@ -16,8 +16,11 @@ from stage_deps import ROOT, stage_deps  # noqa: E402
 P = "${output_dir}/${key}"
 #: per-sequence stages fan out over patients x sequences (DVC matrix; a dict matrix yields its keys)
 MATRIX = "matrix"
+#: once for the whole dataset (`room stage NAME --patient all`)
+DATASET = "dataset"
 Q = "${output_dir}/${item.patient}"
 S = "${item.sequence}"
+E = "${output_dir}/evaluation/${item.patient}/${item.sequence}"
 
 #: name -> (foreach, extra deps, params, outs, metrics file)
 STAGES = {
@@ -52,6 +55,16 @@ STAGES = {
                [f"{Q}/{S}/{d}" for d in ("rgb", "depth", "relative_depth", "surface_normals", "optical_flow",
                                          "point_clouds", "segmentation", "calibration")]
                + [f"{Q}/{S}/metadata/render.json"], f"{Q}/metrics/render_{S}.json"),
+    "noise": (MATRIX, [f"{Q}/{S}/rgb", "${noise.profile}", "data/noise_profiles"], ["noise"],
+              [f"{Q}/{S}/rgb_noisy", f"{Q}/{S}/metadata/noise.json"], f"{Q}/metrics/noise_{S}.json"),
+    # reads rgb_noisy (evaluate.pose.images: noisy) or rgb
+    "evaluate_pose": (MATRIX, [f"{Q}/{S}/rgb", f"{Q}/{S}/rgb_noisy", f"{Q}/{S}/calibration",
+                               f"{Q}/{S}/metadata/render.json"], ["evaluate.pose"],
+                      [f"{E}/pose.json", f"{E}/pose_errors.csv"], f"{Q}/metrics/evaluate_pose_{S}.json"),
+    # once over the dataset: every evaluation result lives under ${output_dir}/evaluation
+    "tables": (DATASET, ["${output_dir}/evaluation"], ["evaluate.tables", "evaluate.pose.methods"],
+               [f"reports/{t}.{x}" for t in ("table_1_pose", "table_2_depth", "table_3_finetune")
+                for x in ("md", "tex", "csv")] + ["reports/pose_speed_accuracy.csv"], "reports/metrics.json"),
 }
 
 HEADER = """\
@@ -65,7 +78,10 @@ HEADER = """\
 def render() -> str:
     lines = [HEADER.rstrip("\n"), "stages:"]
     for name, (foreach, extra, params, outs, metrics) in STAGES.items():
-        if foreach == MATRIX:
+        if foreach == DATASET:
+            ind = "    "
+            lines += [f"  {name}:", f"{ind}cmd: room stage {name} --patient all --params params.yaml --quiet"]
+        elif foreach == MATRIX:
             ind = "    "
             lines += [f"  {name}:", "    matrix:", "      patient: ${patients}", "      sequence: ${sequences}",
                       f"{ind}cmd: room stage {name} --patient ${{item.patient}}/${{item.sequence}} "
@@ -76,8 +92,15 @@ def render() -> str:
                       f"{ind}cmd: room stage {name} --patient ${{key}} --params params.yaml --quiet"]
         lines += [f"{ind}deps:"] + [f"{ind}  - {d}" for d in extra + stage_deps(name)]
         lines += [f"{ind}params:"] + [f"{ind}  - {p}" for p in params]
+        plots = [o for o in outs if o.endswith("_errors.csv")]     # per-frame errors: DVC plots
+        outs = [o for o in outs if o not in plots]
         if outs:
-            lines += [f"{ind}outs:"] + [f"{ind}  - {o}" for o in outs]
+            lines += [f"{ind}outs:"]
+            for o in outs:   # the dataset-level report tables belong in git, not the DVC cache
+                lines += [f"{ind}  - {o}:", f"{ind}      cache: false"] if foreach == DATASET else [f"{ind}  - {o}"]
+        if plots:
+            lines += [f"{ind}plots:"] + [x for o in plots for x in (f"{ind}  - {o}:", f"{ind}      x: frame",
+                                                                      f"{ind}      cache: false")]
         lines += [f"{ind}metrics:", f"{ind}  - {metrics}:", f"{ind}      cache: false"]
     return "\n".join(lines) + "\n"
 

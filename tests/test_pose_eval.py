@@ -398,19 +398,19 @@ def test_evaluate_pose_and_tables_stages(tmp_path, textured):
     images, poses = textured
     cfg = make_cfg(tmp_path)
     seq = tmp_path / "out" / "p0" / "sequence_000"
+    ev = tmp_path / "out" / "evaluation" / "p0" / "sequence_000"
     write_sequence(seq, images, poses, CAM)
     metrics = evaluate_pose.run(cfg, "p0/sequence_000")
-    doc = json.loads((seq / "evaluation" / "pose.json").read_text())
+    doc = json.loads((ev / "pose.json").read_text())
     assert doc["input"]["image_dir"] == "rgb"                  # no rgb_noisy/ -> the clean frames
     assert doc["methods"]["colmap"]["available"] and doc["methods"]["colmap"]["RRA@5"] == 1.0
     assert doc["methods"]["vggt"] == {"available": False, "reason": doc["methods"]["vggt"]["reason"]}
     assert metrics["colmap"]["AUC@30"] > 0.9 and "vggt" not in metrics
-    rows = list(csv.DictReader(io.StringIO((seq / "evaluation" / "pose_errors.csv").read_text())))
+    rows = list(csv.DictReader(io.StringIO((ev / "pose_errors.csv").read_text())))
     assert len(rows) == len(images) and float(rows[3]["colmap_position_error_mm"]) < 0.5
     assert rows[0]["orb_vo_step_rotation_error_deg"] == ""     # frame 0 has no step
     assert (tmp_path / "out" / "p0" / "metrics" / "evaluate_pose_sequence_000.json").is_file()
-    assert evaluate_pose.outputs(cfg, "p0/sequence_000") == [seq / "evaluation" / "pose.json",
-                                                              seq / "evaluation" / "pose_errors.csv"]
+    assert evaluate_pose.outputs(cfg, "p0/sequence_000") == [ev / "pose.json", ev / "pose_errors.csv"]
 
     counts = tables.run(cfg, "all")
     assert counts["pose_json"] == 1 and counts["depth_json"] == 0
@@ -442,16 +442,17 @@ def test_tables_from_hand_made_files(tmp_path):
 
     cfg = make_cfg(tmp_path)
     out = tmp_path / "out" / "p0"
+    ev0 = tmp_path / "out" / "evaluation" / "p0" / "sequence_000"
     rec = {"available": True, "reason": None, "RTA@5": 0.25, "AUC@30": 0.5, "registration_rate": 1.0,
            "ate_rmse_mm": 2.0, "seconds_per_frame": 0.1}
-    write_json(out / "sequence_000" / "evaluation" / "pose.json",
+    write_json(ev0 / "pose.json",
                {"methods": {"colmap": {**rec, "RRA@5": 0.5}, "orb_vo": {**rec, "RRA@5": 0.2}}})
-    write_json(out / "sequence_001" / "evaluation" / "pose.json",
+    write_json(ev0.parent / "sequence_001" / "pose.json",
                {"methods": {"colmap": {**rec, "RRA@5": 1.0, "ate_rmse_mm": None},
                             "orb_vo": {"available": False, "reason": "tracking lost"}}})
     d = {"available": True, "reason": None, "L1_mm": 1.5, "AbsRel": 0.1, "RMSE_mm": 2.0, "delta1": 0.9,
          "delta2": 0.95, "delta3": 0.99, "n_frames": 10, "seconds_per_frame": 0.05}
-    write_json(out / "sequence_000" / "evaluation" / "depth.json",
+    write_json(ev0 / "depth.json",
                {"methods": {"depth_anything": d, "zoedepth": {"available": False, "reason": "no weights"}},
                 "units": {"L1_mm": "mm", "delta1": "fraction"}})
     write_json(out / "metrics" / "depth_finetune.json",
@@ -482,6 +483,7 @@ def test_evaluate_pose_stage_inputs(tmp_path, textured):
 
     images, poses = textured
     seq = tmp_path / "out" / "p0" / "sequence_000"
+    ev = tmp_path / "out" / "evaluation" / "p0" / "sequence_000"
     with pytest.raises(InputError):                            # nothing rendered yet
         evaluate_pose.run(make_cfg(tmp_path), "p0/sequence_000")
     write_sequence(seq, images[:2], poses[:2], CAM)
@@ -489,10 +491,10 @@ def test_evaluate_pose_stage_inputs(tmp_path, textured):
     for k, im in enumerate(noisy):
         write_png8(seq / "rgb_noisy" / f"frame_{k:04d}.png", im)
     evaluate_pose.run(make_cfg(tmp_path, methods=("orb_vo",), max_frames=None), "p0/sequence_000")
-    doc = json.loads((seq / "evaluation" / "pose.json").read_text())
+    doc = json.loads((ev / "pose.json").read_text())
     assert doc["input"]["image_dir"] == "rgb_noisy" and doc["methods"]["orb_vo"]["n_pairs"] == 1
     evaluate_pose.run(make_cfg(tmp_path, methods=("orb_vo",), images="clean", downscale=2.0), "p0/sequence_000")
-    doc = json.loads((seq / "evaluation" / "pose.json").read_text())
+    doc = json.loads((ev / "pose.json").read_text())
     assert doc["input"]["image_dir"] == "rgb" and doc["input"]["image_size"] == [80, 80]
     for bad in ({"images": "blurry"}, {"frame_stride": 0}, {"max_frames": 1}, {"downscale": 0.5}):
         with pytest.raises(ConfigError):

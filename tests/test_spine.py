@@ -62,6 +62,8 @@ def test_dvc_stage_outs_match_stage_module(name):
     fan = stages.FAN_OUT[name]
     if fan == "sequences":
         body, keys = st, [(p, s) for p in cfg.patients for s in cfg.sequences]
+    elif fan == "dataset":
+        body, keys = st, [("all", None)]
     else:
         assert st["foreach"] == "${%s}" % fan
         body, keys = st["do"], [(k, None) for k in (cfg.phantoms if fan == "phantoms" else cfg.patients)]
@@ -70,12 +72,13 @@ def test_dvc_stage_outs_match_stage_module(name):
         def render(s: str) -> str:
             s = s.replace("${output_dir}", cfg.output_dir).replace("${key}", patient)
             return s.replace("${item.patient}", patient).replace("${item.sequence}", seq or "")
-        outs = {render(o) for o in body.get("outs", [])}
+        outs = {render(next(iter(o)) if isinstance(o, dict) else o)
+                for o in body.get("outs", []) + body.get("plots", [])}
         metrics = {render(next(iter(m))) if isinstance(m, dict) else render(m) for m in body["metrics"]}
         key = f"{patient}/{seq}" if seq else patient
         assert outs | metrics == {str(p) for p in module.outputs(cfg, key)} | metrics
         metric_name = Path(next(iter(metrics))).stem
-        assert metric_name in (name, "anatomy_validation", "centreline_validation", f"{name}_{seq}")
+        assert metric_name in (name, "anatomy_validation", "centreline_validation", f"{name}_{seq}", "metrics")
         for p in body["params"]:
             node = cfg
             for part in render(p).split("."):

@@ -11,6 +11,15 @@
     room params [--check] [hydra overrides ...]
         Write params.yaml as the composition of conf/ (what `dvc exp run`
         does); --check only reports whether params.yaml is up to date.
+    room calibrate-noise --frames DIR --out PROFILE.npz [key=value ...]
+        Measure a sensor-noise profile from real endoscope frames
+        (room_pipeline.noise.cli).
+    room export --format {colmap,nerfstudio,tum} SEQ OUT [--overwrite] [--images rgb|rgb_noisy|none]
+                [--depth png16|npy|none] [--point-stride N]
+        Export a rendered sequence with its ground-truth poses (room_pipeline.export).
+    room report [--output-dir DIR] [--out FILE] [--max-frames N] [overrides]
+        Write the self-contained HTML report of a dataset (room_pipeline.report).
+    `room TOOL --help` lists a tool's options.
 
 Bad input ends with one line on stderr ("room: error: ...") and exit status 2.
 """
@@ -67,8 +76,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     config_path = run_dir / "run_config.yaml"
     write_text(config_path, OmegaConf.to_yaml(cfg))
     for name in order:
-        keys = ([f"{patient}/{s}" for s in cfg.get("sequences") or []]
-                if stages.FAN_OUT[name] == "sequences" else [patient])
+        fan = stages.FAN_OUT[name]
+        keys = ([f"{patient}/{s}" for s in cfg.get("sequences") or []] if fan == "sequences"
+                else ["all"] if fan == "dataset" else [patient])
         for key in keys:
             print(f"room run: stage {name} ({key})", flush=True)
             rc = subprocess.call([sys.executable, "-m", "room_pipeline.cli", "stage", name,
@@ -98,6 +108,25 @@ def cmd_params(args: argparse.Namespace) -> int:
     return 0
 
 
+#: sub-commands that are tools, not pipeline steps: name -> (module with ``main(argv)``, help).  They are
+#: imported by name only when called, so `room stage` (what dvc.yaml runs) never depends on their code.
+TOOLS = {
+    "calibrate-noise": ("room_pipeline.noise.cli", "measure a sensor-noise profile from real endoscope frames"),
+    "export": ("room_pipeline.export", "export a rendered sequence (COLMAP, nerfstudio, TUM)"),
+    "report": ("room_pipeline.report.html", "write the self-contained HTML report of a dataset"),
+}
+
+
+def _tool(name: str):
+    def call(args: argparse.Namespace) -> int:
+        import importlib
+
+        module = importlib.import_module(TOOLS[name][0])
+        return int(module.main(list(args.tool_args)) or 0)
+
+    return call
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="room", description="room-pipeline: CT -> bronchoscopy datasets")
     sub = p.add_subparsers(dest="command", required=True)
@@ -121,6 +150,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--output", default="params.yaml")
     q.add_argument("overrides", nargs="*")
     q.set_defaults(func=cmd_params)
+
+    for name, (_, text) in TOOLS.items():   # each parses its own arguments (`room NAME --help`)
+        t = sub.add_parser(name, help=text, add_help=False, prefix_chars="\0")
+        t.add_argument("tool_args", nargs=argparse.REMAINDER)
+        t.set_defaults(func=_tool(name))
     return p
 
 

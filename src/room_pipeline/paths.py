@@ -11,6 +11,7 @@
     ``anatomy/centreline_graph.json``   navigation tree (branches, parents, generations, radii)
     ``sequence_YYY/metadata/``          trajectory.json, timestamps.json, trajectory_tum.txt
     ``metrics/<stage>.json``            per-stage DVC metrics
+``<output_dir>/evaluation/<patient>/<sequence>/``  pose / depth benchmark results (read by `tables`)
     ``sequence_YYY/...``                rendered sequences (later stages)
 """
 from __future__ import annotations
@@ -112,6 +113,16 @@ class PatientPaths:
 
     def sequence_metadata(self, sequence: str) -> Path:
         return self.sequence(sequence) / "metadata"
+
+    # evaluation (one folder per dataset: the tables stage depends on it as a whole)
+    @property
+    def evaluation_root(self) -> Path:
+        """``<output_dir>/evaluation/<patient>/``."""
+        return Path(self.output_dir) / "evaluation" / self.patient
+
+    def evaluation(self, sequence: str) -> Path:
+        """``<output_dir>/evaluation/<patient>/<sequence>/``: pose.json, depth.json, per-frame CSVs."""
+        return self.evaluation_root / sequence
 
     @property
     def metrics_dir(self) -> Path:

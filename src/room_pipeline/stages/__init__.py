@@ -10,12 +10,14 @@ from types import ModuleType
 
 #: pipeline order; `room run` executes these in turn
 STAGES = ("phantom", "segment", "sdf", "mesh", "validate_anatomy", "medial_axis", "validate_centreline",
-          "trajectory", "simulate", "render")
+          "trajectory", "simulate", "render", "noise", "evaluate_pose", "tables")
 
-#: how each stage fans out: over phantom patients, all patients, or patients x sequences
+#: how each stage fans out: over phantom patients, all patients, patients x sequences, or once for the
+#: whole dataset (key "all")
 FAN_OUT = {"phantom": "phantoms", "segment": "patients", "sdf": "patients", "mesh": "patients",
            "validate_anatomy": "phantoms", "medial_axis": "patients", "validate_centreline": "phantoms",
-           "trajectory": "sequences", "simulate": "sequences", "render": "sequences"}
+           "trajectory": "sequences", "simulate": "sequences", "render": "sequences", "noise": "sequences",
+           "evaluate_pose": "sequences", "tables": "dataset"}
 
 
 def load(name: str) -> ModuleType:

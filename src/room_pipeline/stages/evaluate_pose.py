@@ -6,7 +6,7 @@ Reads ``<patient>/<sequence>/``: the frames (``rgb_noisy/`` when
 and the intrinsics (``calibration/camera_params.json``).  Optional frame
 stride, frame cap and image downscale (K scaled to match) keep it fast.
 
-Writes ``<patient>/<sequence>/evaluation/pose.json`` -- per method: available
+Writes ``<output_dir>/evaluation/<patient>/<sequence>/pose.json`` -- per method: available
 / reason, RRA@5, RTA@5, AUC@30 (fractions of frame pairs), registration rate,
 ATE after Sim(3) alignment (mm), wall time -- and
 ``evaluation/pose_errors.csv`` (one row per frame, one column group per method:
@@ -84,8 +84,8 @@ class PoseEvalParams:
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
-    seq = patient_paths(cfg, patient).sequence(sequence)
-    return [seq / "evaluation" / "pose.json", seq / "evaluation" / "pose_errors.csv"]
+    ev = patient_paths(cfg, patient).evaluation(sequence)
+    return [ev / "pose.json", ev / "pose_errors.csv"]
 
 
 def image_dir(seq: Path, which: str) -> Path:
@@ -184,13 +184,13 @@ def run(cfg: DictConfig, key: str) -> dict:
         images, K, poses_gt, info = load_sequence(seq, p)
         results, curves = evaluate_methods(images, K, poses_gt, p)
     tau, T = f"{p.rra_threshold_deg:g}", int(p.auc_max_deg)
-    write_json(seq / "evaluation" / "pose.json", _finite(round_floats({
+    write_json(paths.evaluation(sequence) / "pose.json", _finite(round_floats({
         "methods": results, "input": info, "units": UNITS,
         "protocol": f"all {len(images) * (len(images) - 1) // 2} frame pairs i<j; RRA@{tau}/RTA@{tau}: share of "
                     f"pairs under {tau} deg; AUC@{T}: mean over 1..{T} deg thresholds of the share of pairs with "
                     f"max(rot, trans) error under the threshold; pairs with an unregistered frame count 180 deg",
         "metadata": metadata("evaluate_pose", patient, cfg, ("evaluate",), sequence=sequence)}, 6)))
-    write_text(seq / "evaluation" / "pose_errors.csv", errors_csv(info["frames"], curves))
+    write_text(paths.evaluation(sequence) / "pose_errors.csv", errors_csv(info["frames"], curves))
     keys = (f"RRA@{tau}", f"RTA@{tau}", f"AUC@{T}", "registration_rate", "ate_rmse_mm", "seconds_per_frame")
     metrics: dict[str, Any] = {"frames": len(images), "wall_time_s": round(timer.wall_s, 3),
                                "peak_rss_mb": round(timer.peak_rss_mb(), 1)}

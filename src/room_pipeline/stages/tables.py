@@ -2,7 +2,7 @@
 
 Not per patient: ``room stage tables --patient all`` (the key may also be one
 configured patient id, to tabulate only that patient).  Reads, where present,
-``<output_dir>/<patient>/<sequence>/evaluation/pose.json`` (stage
+``<output_dir>/evaluation/<patient>/<sequence>/pose.json`` (stage
 `evaluate_pose`), ``.../evaluation/depth.json`` and
 ``<output_dir>/<patient>/metrics/depth_finetune.json`` (the depth stages);
 a missing file gives a "not run" row, never an error.
@@ -97,7 +97,7 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
     for pat in patients:
         paths = PatientPaths(output_dir, pat)
         for seq in sequences:
-            f = paths.sequence(seq) / "evaluation" / "depth.json"
+            f = paths.evaluation(seq) / "depth.json"
             if f.is_file():
                 doc = _read(f)
                 if "%" in str((doc.get("units") or {}).get("delta1", "")):
@@ -119,7 +119,7 @@ def read_pose_files(output_dir: Path, patients: list[str], sequences: list[str])
     docs = []
     for pat in patients:
         for seq in sequences:
-            f = PatientPaths(output_dir, pat).sequence(seq) / "evaluation" / "pose.json"
+            f = PatientPaths(output_dir, pat).evaluation(seq) / "pose.json"
             if f.is_file():
                 docs.append(_read(f))
     return docs
