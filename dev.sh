@@ -9,8 +9,11 @@ cd "$(dirname "$0")"
 VENV=.venv
 PY=${PYTHON:-python3.11}
 command -v "$PY" >/dev/null 2>&1 || PY=python3
-# Debian runtime libraries: open3d needs libusb; bpy (Blender) needs the X/GL client libraries even headless.
-DEB_PKGS="libusb-1.0-0 libgl1 libegl1 libxrender1 libxi6 libxkbcommon0 libsm6 libxxf86vm1 libxfixes3 libgomp1"
+# Debian runtime libraries: open3d needs libusb; bpy (Blender) needs the X/GL client libraries even headless
+# (libgl1/libegl1 also give VTK/pyvista off-screen EGL rendering); chromium checks the HTML report in a test.
+DEB_PKGS="libusb-1.0-0 libgl1 libegl1 libxrender1 libxi6 libxkbcommon0 libsm6 libxxf86vm1 libxfixes3 libgomp1 chromium"
+# torch must be the local CPU wheel: from PyPI it would pull GBs of CUDA packages
+WHEELS=${ROOM_WHEELS:-/opt/wheels}
 
 log() { printf '[dev.sh] %s\n' "$*" >&2; }
 
@@ -37,15 +40,21 @@ setup_python() {
     "$PY" -c 'import sys; assert sys.version_info[:2] == (3, 11), sys.version' 2>/dev/null || {
         log "Python 3.11 is required (bpy 5.0 ships for 3.11 only); found: $("$PY" --version 2>&1)"; exit 1; }
     local stamp="$VENV/.room-setup"
-    local want
-    want=$(cat constraints.txt pyproject.toml | sha256sum | cut -d' ' -f1)
+    local want extras="dev"
+    if compgen -G "$WHEELS/torch-2.13.0+cpu-*.whl" >/dev/null; then
+        extras="dev,ml"
+    else
+        log "no local CPU torch wheel in $WHEELS: skipping the 'ml' extra (depth CNN / torch dataset tests will skip)"
+    fi
+    want=$( (cat constraints.txt pyproject.toml; echo "$extras") | sha256sum | cut -d' ' -f1)
     if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x "$VENV/bin/room" ]; then
         return 0   # already set up with exactly these pins
     fi
     [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
     log "installing pinned Python packages into $VENV (constraints.txt)"
     "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade "pip>=23" setuptools wheel
-    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[dev]"
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check --find-links "$WHEELS" -c constraints.txt \
+        -e ".[$extras]"
     echo "$want" > "$stamp"
 }
 
