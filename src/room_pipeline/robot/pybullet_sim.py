@@ -695,6 +695,19 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
 
 def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
              geometry: ScopeGeometry | None = None) -> SimResult:
+    """Drive the simulated scope along ``trajectory``: see :func:`_simulate`.
+
+    BLAS is limited to one thread meanwhile: the loop does thousands of tiny (20x20) matrix
+    operations, for which OpenBLAS's thread hand-off cost ~40 % of the run time here.
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _simulate(trajectory, mesh, params, geometry)
+
+
+def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
+              geometry: ScopeGeometry | None = None) -> SimResult:
     """Drive the simulated scope along ``trajectory`` (a planned :class:`Trajectory`) in ``mesh``.
 
     ``mesh``: the closed lumen surface (world RAS+ m), or None for free space.  The
