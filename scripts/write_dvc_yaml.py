@@ -10,6 +10,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import yaml
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from stage_deps import ROOT, stage_deps  # noqa: E402
 
@@ -21,6 +23,9 @@ DATASET = "dataset"
 Q = "${output_dir}/${item.patient}"
 S = "${item.sequence}"
 E = "${output_dir}/evaluation/${item.patient}/${item.sequence}"
+
+#: the default configuration's sequences (for stages that read all of a patient's sequences)
+SEQUENCES = yaml.safe_load((ROOT / "params.yaml").read_text(encoding="utf-8"))["sequences"]
 
 #: name -> (foreach, extra deps, params, outs, metrics file)
 STAGES = {
@@ -61,6 +66,17 @@ STAGES = {
     "evaluate_pose": (MATRIX, [f"{Q}/{S}/rgb", f"{Q}/{S}/rgb_noisy", f"{Q}/{S}/calibration",
                                f"{Q}/{S}/metadata/render.json"], ["evaluate.pose"],
                       [f"{E}/pose.json", f"{E}/pose_errors.csv"], f"{Q}/metrics/evaluate_pose_{S}.json"),
+    # trains on every configured sequence of the phantom patient (the list is expanded from params.yaml's
+    # `sequences` when this file is generated: rerun this script after changing it; `sequences` is a param)
+    "train_depth": ("${phantoms}", [f"{P}/{s}/{d}" for s in SEQUENCES
+                                    for d in ("${depth.input}", "depth", "calibration", "metadata/render.json")],
+                    ["depth.train", "depth.cnn", "depth.valid_range_mm", "depth.input", "sequences"],
+                    [f"{P}/depth_model", "${output_dir}/evaluation/${key}/depth_finetune.json"],
+                    f"{P}/metrics/train_depth.json"),
+    "evaluate_depth": (MATRIX, [f"{Q}/{S}/{d}" for d in ("${depth.input}", "depth", "calibration",
+                                                            "metadata/render.json")]
+                       + ["${output_dir}/${depth.cnn.checkpoint_patient}/depth_model"], ["depth"],
+                       [f"{E}/depth.json", f"{E}/depth_errors.csv"], f"{Q}/metrics/evaluate_depth_{S}.json"),
     # once over the dataset: every evaluation result lives under ${output_dir}/evaluation
     "tables": (DATASET, ["${output_dir}/evaluation"], ["evaluate.tables", "evaluate.pose.methods"],
                [f"reports/{t}.{x}" for t in ("table_1_pose", "table_2_depth", "table_3_finetune")

@@ -455,7 +455,7 @@ def test_tables_from_hand_made_files(tmp_path):
     write_json(ev0 / "depth.json",
                {"methods": {"depth_anything": d, "zoedepth": {"available": False, "reason": "no weights"}},
                 "units": {"L1_mm": "mm", "delta1": "fraction"}})
-    write_json(out / "metrics" / "depth_finetune.json",
+    write_json(tmp_path / "out" / "evaluation" / "p0" / "depth_finetune.json",
                {"datasets": {"room": {"before": d, "after": {**d, "L1_mm": 0.5, "delta1": 0.99}}}})
     tables.run(cfg, "p0")
     rep = tmp_path / "reports"
@@ -510,7 +510,7 @@ def test_finetune_table_reads_train_depth_record(tmp_path):
 
     cfg = make_cfg(tmp_path)
     m = {"L1_mm": 2.0, "AbsRel": 0.2, "RMSE_mm": 3.0, "delta1": 0.5}
-    write_json(tmp_path / "out" / "p0" / "metrics" / "train_depth.json", {"datasets": {
+    write_json(tmp_path / "out" / "evaluation" / "p0" / "depth_finetune.json", {"datasets": {
         "phantom_held_out": {"available": True, "reason": None, "before": m, "after": {**m, "AbsRel": 0.1}},
         "simcol": {"available": False, "reason": "depth.train.simcol_dir is not set", "before": None, "after": None}},
         "training": {}})

@@ -10,14 +10,15 @@ from types import ModuleType
 
 #: pipeline order; `room run` executes these in turn
 STAGES = ("phantom", "segment", "sdf", "mesh", "validate_anatomy", "medial_axis", "validate_centreline",
-          "trajectory", "simulate", "render", "noise", "evaluate_pose", "tables")
+          "trajectory", "simulate", "render", "noise", "train_depth", "evaluate_depth", "evaluate_pose", "tables")
 
 #: how each stage fans out: over phantom patients, all patients, patients x sequences, or once for the
 #: whole dataset (key "all")
 FAN_OUT = {"phantom": "phantoms", "segment": "patients", "sdf": "patients", "mesh": "patients",
            "validate_anatomy": "phantoms", "medial_axis": "patients", "validate_centreline": "phantoms",
            "trajectory": "sequences", "simulate": "sequences", "render": "sequences", "noise": "sequences",
-           "evaluate_pose": "sequences", "tables": "dataset"}
+           "train_depth": "phantoms", "evaluate_depth": "sequences", "evaluate_pose": "sequences",
+           "tables": "dataset"}
 
 
 def load(name: str) -> ModuleType:

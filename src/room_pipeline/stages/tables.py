@@ -4,7 +4,7 @@ Not per patient: ``room stage tables --patient all`` (the key may also be one
 configured patient id, to tabulate only that patient).  Reads, where present,
 ``<output_dir>/evaluation/<patient>/<sequence>/pose.json`` (stage
 `evaluate_pose`), ``.../evaluation/depth.json`` and
-``<output_dir>/<patient>/metrics/depth_finetune.json`` (the depth stages);
+``<output_dir>/evaluation/<patient>/depth_finetune.json`` (the depth stages);
 a missing file gives a "not run" row, never an error.
 
 Writes into ``evaluate.tables.output_dir`` (default ``reports/``):
@@ -32,7 +32,6 @@ from .common import _finite, round_floats
 
 TABLES = ("table_1_pose", "table_2_depth", "table_3_finetune")
 #: per-patient fine-tuning records, in order of preference (metrics/<name>.json)
-FINETUNE_METRICS = ("depth_finetune", "train_depth")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,8 +89,8 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
     "n_frames", "seconds_per_frame"}}, "units": {...}}; ``depth_finetune.json`` = {"datasets": {name:
     {"before": {metrics}, "after": {metrics}}}}.  ``delta1`` is taken as a fraction unless ``units.delta1``
     mentions %, in which case it is converted to a fraction here.  The fine-tuning record is
-    ``metrics/depth_finetune.json`` (the agreed name) or, failing that, ``metrics/train_depth.json`` (what the
-    `train_depth` stage writes, same ``datasets`` layout plus per-dataset ``available`` / ``reason``).
+    ``<output_dir>/evaluation/<patient>/depth_finetune.json`` (written by `train_depth`, with per-dataset
+    ``available`` / ``reason``).
     """
     depth, finetune = [], []
     for pat in patients:
@@ -106,11 +105,9 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
                             if isinstance(rec.get(k), (int, float)):
                                 rec[k] = rec[k] / 100.0
                 depth.append(doc)
-        for name in FINETUNE_METRICS:                  # the agreed name first, then what train_depth writes
-            f = paths.metrics(name)
-            if f.is_file():
-                finetune.append(_read(f))
-                break
+        f = paths.evaluation_root / "depth_finetune.json"      # written by train_depth
+        if f.is_file():
+            finetune.append(_read(f))
     return depth, finetune
 
 

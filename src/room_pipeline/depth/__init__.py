@@ -1,0 +1,1 @@
+"""Monocular depth: metrics, estimators (physics baseline, small CNN, Hugging Face, external) and their registry."""
