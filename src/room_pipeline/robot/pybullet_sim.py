@@ -13,21 +13,25 @@ Scope model
     its chords are ``l/n`` long, a relative length error ``(kappa l/n)^2 / 24``), ``theta_y = 0``.
     The tip camera sits at the last vertex; its view direction is the last chord turned by
     half the last vertex's actual joint angles (the discrete tangent there).
-    Every joint is a spring-damper about its target, applied as an explicit torque each
-    step (default motors off: velocity control with force 0):
-    ``tau = joint_stiffness (theta* - theta) - joint_damping dtheta/dt``.
+    Every joint is a spring-damper about its target (``joint_stiffness``, ``joint_damping``),
+    applied as a torque each step (motors off: velocity control with force 0).  Default
+    (``joint_integration: implicit``): stable PD (Tan, Liu & Turk 2011): the spring acts at
+    ``theta + dt*omega`` and the damper at the velocity predicted with the joint-space mass
+    matrix, so the stiff, light chain is stable at a 5 ms step.  ``explicit``:
+    ``tau = k (theta* - theta) - c dtheta/dt`` with raised link inertia (``inertia_factor``).
 
 Units and stability
-    SI (metres, kg, s).  The scope's true link inertia (~1e-9 kg m^2) with the joint damping
-    (5e-4 N m s/rad) would need a time step below ~5 us for the explicit damping torque to be
-    stable.  The motion is quasi-static (mm/s, time constant ``damping/stiffness`` = 25 ms),
-    so the links' **rotational inertia is raised** to ``inertia_factor * damping *
-    time_step_s`` (about each axis; mass scaling, the standard trick for quasi-static
-    rod simulations): with the default factor 4 the explicit spring-damper is stable
-    (``dt * damping / I = 1/4``) and the joint equilibrium -- what the output records --
-    does not depend on inertia.  Gravity is off by default (``gravity_m_s2: 0``: the scope's
-    weight, ~0.3 g per bending segment, is carried by the handle and the airway; the
-    kinematic model has none).
+    SI (metres, kg, s).  With the scope's real mass (0.03 kg/m: 0.15 g per 5 mm link) the stable
+    PD keeps free space exact but leaves the chain limp in contact (the predicted acceleration of
+    a link pressed on the wall is wrong by orders of magnitude): it buckles and tunnels the wall
+    at a 5 ms step.  The motion is quasi-static (mm/s; time constant damping/stiffness = 25 ms),
+    so the mass is **scaled** (``mass_scale``, default x100: the standard trick for quasi-static
+    rod simulation) and mass-proportional damping ``alpha M`` (``mass_damping_per_s``) keeps the
+    scaled chain near critically damped; neither changes an equilibrium (what the output
+    records); both vanish as ``mass_scale -> 1``.  benchmarks/results/simulation.md measures
+    stability, tracking and free-space settling against mass_scale.  Gravity is off by default
+    (``gravity_m_s2: 0``: the scope's weight, ~0.3 g per bending segment, is carried by the
+    handle and the airway; the kinematic model has none).
 
 Contact
     Soft normal contact ``f = k_n delta + c_n d(delta)/dt`` via
@@ -123,7 +127,7 @@ class SimParams:
     settle_time_s: float = 0.3              # settling before the first frame
     ik_direction_weight_mm: float | None = None  # weight of the view direction in IK (null: l)
     controller_iterations: int = 2
-    mass_matrix_every: int = 10             # implicit: refresh the joint-space mass matrix every n steps
+    mass_matrix_every: int = 1              # implicit: refresh the joint-space mass matrix every n steps (20 diverged)
     max_rate_q1_mm_s: float = 16.0          # actuator rate limits of the command: tendon differential, mm/s
     max_rate_q2_deg_s: float = 90.0         # axial rotation, deg/s
     max_rate_q3_mm_s: float = 50.0          # insertion, mm/s
