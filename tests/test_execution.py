@@ -1,4 +1,4 @@
-"""Parallel executor (serial / local processes / Ray) and the reproducibility manifest.
+"""Parallel executor (serial / local processes / Ray), the reproducibility manifest, and their use by the product.
 
 The workload is a small render-and-write job shaped like the render stage:
 the fast renderer on a tube, per-worker state = the renderer (built once),
@@ -6,6 +6,7 @@ exposure fixed once before the fan-out, frames written atomically into
 rgb/ depth/ optical_flow/, then manifest.json.  It is module-level so that
 spawned processes and Ray actors can import it, and runnable as a command
 (``main``) for the kill / permission tests, which run it in a subprocess.
+The real render stage through the executors, and `room run -m`, are at the end.
 """
 from __future__ import annotations
 
@@ -465,8 +466,9 @@ def test_full_output_location_keeps_what_was_written(tmp_path):
             f"sys.path.insert(0, {str(REPO)!r}); from tests.test_execution import main; sys.exit(main(sys.argv[1:]))")
     res = subprocess.run([sys.executable, "-c", code, str(out), "4", "local", "1", "0"], capture_output=True,
                          text=True, timeout=300)
-    assert res.returncode != 0
-    assert "File too large" in res.stderr.strip().splitlines()[-1]          # the original OSError, from a worker
+    assert res.returncode == 2, res.stderr[-2000:]
+    last = res.stderr.strip().splitlines()[-1]       # the worker's failed write, one line naming the file and why
+    assert last == f"error: cannot write {out / 'optical_flow' / 'frame_0000.flo'}: File too large"
     assert _tree_bytes(out) == before and verify_manifest(out) == [] and not stale_temp_files(out)
 
 
@@ -525,3 +527,153 @@ def test_ray_missing_is_a_clear_error(monkeypatch):
 
     with pytest.raises(BackendUnavailable, match="needs the 'ray' package"):
         make_executor({"backend": "ray"})
+
+
+# --------------------------------------------------------------------------- the render stage through the executor
+
+
+def _rendered(root: Path) -> dict:
+    """Every file the render stage wrote (bytes), without the metrics (wall times)."""
+    return {k: v for k, v in _tree_bytes(root).items() if "/metrics/" not in f"/{k}"}
+
+
+def _render_again(ref_root: Path, root: Path, render: dict, execution: dict | None) -> dict:
+    """The inputs of ``ref_root`` (mesh, centreline, poses) rendered again into ``root`` with another executor."""
+    from omegaconf import OmegaConf
+
+    from room_pipeline.stages import render as render_stage
+    from tests.test_dataset import PATIENT, SEQUENCE
+
+    shutil.copytree(ref_root, root)
+    seq = root / PATIENT / SEQUENCE
+    for d in seq.iterdir():
+        if d.name != "metadata":
+            shutil.rmtree(d)
+    (seq / "metadata" / "render.json").unlink()
+    shutil.rmtree(root / PATIENT / "metrics")
+    (seq / "rgb").mkdir()
+    stale = seq / "rgb" / ".frame_0000.png.k1ll3d00.tmp.png"       # what a killed run leaves: removed first
+    stale.write_bytes(b"half")
+    cfg = {"output_dir": str(root), "render": render}
+    if execution is not None:
+        cfg["execution"] = execution
+    metrics = render_stage.run(OmegaConf.create(cfg), f"{PATIENT}/{SEQUENCE}")
+    assert not stale.exists()
+    return metrics
+
+
+@pytest.fixture(scope="module")
+def rendered_serial(tmp_path_factory):
+    """The render stage with its default execution (local, 1 worker: in-process) on a small tube sequence."""
+    from tests.test_dataset import FOV, RENDERED, render_sequence
+
+    root = tmp_path_factory.mktemp("serial")
+    render_sequence(root, n=7, size=32)
+    return root, {"width": 32, "height": 32, "fov_deg": FOV, "modalities": list(RENDERED)}
+
+
+@pytest.mark.parametrize("backend", ["local", "ray"])
+def test_render_stage_bytes_do_not_depend_on_the_executor(rendered_serial, tmp_path, backend, request):
+    """Two workers (frames in 3 chunks, Open3D on one thread each) write the bytes of the serial run, render.json too."""
+    if backend == "ray":
+        request.getfixturevalue("ray_session")
+    ref, render = rendered_serial
+    metrics = _render_again(ref, tmp_path / backend, render, {"backend": backend, "workers": 2, "chunk_size": 3})
+    a, b = _rendered(ref), _rendered(tmp_path / backend)
+    assert len(a) == 7 * 8 + 6 and sorted(a) == sorted(b)   # 8 files a frame; legend, camera, render.json; 3 inputs
+    assert [k for k in a if a[k] != b[k]] == []
+    assert metrics["frames"] == 7 and metrics["workers"] == 2 and metrics["peak_rss_mb"] > 0
+    meta = json.loads(b["patient_t/sequence_000/metadata/render.json"])
+    assert meta["renderer"]["config"]["nthreads"] == 0              # the metadata is the driver's, whatever the workers
+    assert meta["renderer"]["film"]["exposure_ev"] is None and isinstance(meta["renderer"]["exposure_ev"], float)
+
+
+def test_render_stage_execution_params():
+    from omegaconf import OmegaConf
+
+    from room_pipeline.stages.render import execution_params
+
+    assert execution_params(OmegaConf.create({})).backend == "serial"          # no section: in this process
+    assert execution_params(OmegaConf.create({"execution": {"backend": "local", "workers": 1}})).backend == "serial"
+    p = execution_params(OmegaConf.create({"execution": {"backend": "local", "workers": 3}}))
+    assert (p.backend, p.workers) == ("local", 3)
+    with pytest.raises(ConfigError, match=r"^execution\.workers must be >= 1"):
+        execution_params(OmegaConf.create({"execution": {"workers": 0}}))
+
+
+def test_render_stage_cycles_bytes_do_not_depend_on_the_executor(tmp_path):
+    """Cycles RGB (exposure chosen once in the driver, Cycles threads = cores / workers) in worker processes.
+
+    The driver imported bpy first: a spawned worker must still import it (see render._drop_inherited_bpy_paths).
+    """
+    pytest.importorskip("bpy")
+    from tests.test_dataset import FOV, render_sequence
+
+    render = {"width": 24, "height": 24, "fov_deg": FOV, "modalities": ["rgb", "depth"], "backend": "cycles",
+              "cycles_samples": 4}
+    ref = tmp_path / "ref"
+    render_sequence(ref, n=3, size=24, modalities=("rgb", "depth"))
+    serial = tmp_path / "serial"
+    _render_again(ref, serial, render, {"backend": "serial"})
+    _render_again(serial, tmp_path / "local", render, {"backend": "local", "workers": 2, "chunk_size": 1})
+    a, b = _rendered(serial), _rendered(tmp_path / "local")
+    assert sorted(a) == sorted(b) and [k for k in a if a[k] != b[k]] == []
+    meta = json.loads(b["patient_t/sequence_000/metadata/render.json"])
+    assert meta["renderer"]["rgb"]["backend"] == "blender_cycles"
+    assert meta["renderer"]["rgb"]["settings"]["threads"] == 0 and meta["renderer"]["rgb"]["settings"]["exposure"] is None
+
+
+# --------------------------------------------------------------------------- room run -m (Hydra multirun)
+
+
+def _hydra_quiet() -> list[str]:
+    return ["hydra/job_logging=none", "hydra/hydra_logging=none"]
+
+
+def test_room_run_multirun_runs_one_job_per_sweep_point(tmp_path, monkeypatch, capsys):
+    from omegaconf import OmegaConf
+
+    from room_pipeline import cli
+    from room_pipeline.config.compose import compose
+
+    monkeypatch.delenv("ROOM_CONF_DIR", raising=False)
+    monkeypatch.chdir(REPO)
+    seen = []
+
+    def fake_run(cfg, patient=None, until=None):
+        seen.append((OmegaConf.to_container(cfg), patient, until, os.getcwd()))
+        return 0
+
+    monkeypatch.setattr(cli, "run_pipeline", fake_run)
+    sweep = tmp_path / "sweep"
+    rc = cli.main(["run", "-m", "--until", "mesh", "render.width=32,64", "execution.workers=2",
+                   f"hydra.sweep.dir={sweep}", *_hydra_quiet()])
+    assert rc == 0
+    assert [c["render"]["width"] for c, _, _, _ in seen] == [32, 64]
+    assert all(u == "mesh" and p is None and cwd == str(REPO) for _, p, u, cwd in seen)
+    # each job gets exactly what `room run` composes for its point of the sweep (relative output_dir, no hydra node)
+    assert seen[0][0] == OmegaConf.to_container(compose(["render.width=32", "execution.workers=2"]))
+    assert seen[1][0]["output_dir"] == "data/output" and "hydra" not in seen[1][0]
+    assert (sweep / "0" / ".hydra" / "overrides.yaml").is_file() and (sweep / "1" / ".hydra").is_dir()
+
+    # a failed job ends the sweep with its exit status; a RoomError is one line and exit status 2
+    calls = []
+
+    def failing(cfg, patient=None, until=None):
+        calls.append(cfg.render.width)
+        if cfg.render.width == 32:
+            return 3
+        return 0
+
+    monkeypatch.setattr(cli, "run_pipeline", failing)
+    assert cli.main(["run", "-m", "render.width=32,64", f"hydra.sweep.dir={tmp_path / 's2'}", *_hydra_quiet()]) == 3
+    assert calls == [32]
+
+    def bad_patient(cfg, patient=None, until=None):
+        raise RoomError(f"unknown patient {patient!r}")
+
+    monkeypatch.setattr(cli, "run_pipeline", bad_patient)
+    capsys.readouterr()
+    assert cli.main(["run", "-m", "--patient", "nobody", "render.width=32",
+                     f"hydra.sweep.dir={tmp_path / 's3'}", *_hydra_quiet()]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "room: error: unknown patient 'nobody'"

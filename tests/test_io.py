@@ -1,13 +1,17 @@
 """Volume and mesh I/O: formats, frames, atomic writes, one-line errors."""
 from __future__ import annotations
 
+import errno
 import gzip
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from room_pipeline.errors import InputError
-from room_pipeline.io.atomic import atomic_path, write_json
+from room_pipeline.io.atomic import FILE_MODE, atomic_path, write_bytes, write_json, write_with
 from room_pipeline.io.mesh import Mesh, read_obj, write_obj
 from room_pipeline.io.volume import Volume, read_nifti_sdf, read_volume, write_nifti
 
@@ -88,6 +92,79 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     assert list(tmp_path.iterdir()) == []
     write_json(target, {"a": np.float32(1.5), "b": np.arange(3)})
     assert target.read_text() == '{\n  "a": 1.5,\n  "b": [\n    0,\n    1,\n    2\n  ]\n}\n'
+
+
+def _current_umask() -> int:
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+def test_atomic_files_get_the_umask_mode_not_mkstemps(tmp_path):
+    """mkstemp makes 0600 files; an atomic write gives what open(path, "w") would: 0666 less the umask."""
+    assert FILE_MODE == 0o666 & ~_current_umask()
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    write_json(tmp_path / "a.json", {"a": 1})
+    write_bytes(tmp_path / "b.bin", b"\x00")
+    write_with(tmp_path / "c.npy", lambda tmp: np.save(tmp, np.arange(3)))        # a library writing the path
+    for name in ("a.json", "b.bin", "c.npy"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == plain.stat().st_mode & 0o777 == FILE_MODE
+    with atomic_path(tmp_path / "d.txt") as tmp:                                 # the temporary file already has it
+        assert tmp.stat().st_mode & 0o777 == FILE_MODE
+        tmp.write_text("d")
+
+
+def test_atomic_mode_follows_the_process_umask(tmp_path):
+    code = ("import os, sys; os.umask(0o027); from room_pipeline.io.atomic import write_text; "
+            "write_text(sys.argv[1], 'x'); print(oct(os.stat(sys.argv[1]).st_mode & 0o777))")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "f.txt")], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "0o640"
+
+
+def test_atomic_write_errors_are_one_line_input_errors(tmp_path):
+    target = tmp_path / "out.bin"
+    target.write_bytes(b"previous")
+
+    def full(tmp):                                  # what a full disk looks like to a writer, half-way through
+        tmp.write_bytes(b"partial")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with pytest.raises(InputError) as ei:
+        write_with(target, full)
+    assert str(ei.value) == f"cannot write {target}: No space left on device"
+    assert isinstance(ei.value.__cause__, OSError)
+    assert target.read_bytes() == b"previous" and sorted(p.name for p in tmp_path.iterdir()) == ["out.bin"]
+
+    (tmp_path / "adir").mkdir()                      # the rename fails: the target is a folder
+    with pytest.raises(InputError, match=r"^cannot write .*adir: Is a directory$"):
+        write_bytes(tmp_path / "adir", b"x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "out.bin"]
+
+    with pytest.raises(InputError, match=r"^cannot write .*out\.bin/x\.json: "):   # the parent is a file
+        write_json(target / "x.json", {})
+    assert target.read_bytes() == b"previous"
+
+    def bad_value(tmp):
+        tmp.write_bytes(b"partial")
+        raise ValueError("not an OSError")
+
+    with pytest.raises(ValueError, match="^not an OSError$"):                   # other errors pass unchanged
+        write_with(tmp_path / "v.bin", bad_value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "out.bin"]
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="running as root: permissions are not enforced for root")
+def test_atomic_write_into_an_unwritable_folder(tmp_path):
+    d = tmp_path / "ro"
+    d.mkdir()
+    d.chmod(0o500)
+    try:
+        with pytest.raises(InputError, match=r"^cannot write .*ro/f\.json: Permission denied$"):
+            write_json(d / "f.json", {})
+    finally:
+        d.chmod(0o700)
 
 
 def test_obj_roundtrip(tmp_path):

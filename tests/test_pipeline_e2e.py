@@ -11,17 +11,36 @@ from pathlib import Path
 
 import pytest
 
+from room_pipeline.stages import FAN_OUT, STAGES
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 #: a small phantom so the whole chain runs in seconds (coarse voxels, fewer generations)
 SMALL = ["phantom.spacing_mm=[1.2,1.2,1.2]", "phantom.max_generation=5", "sequences=[sequence_000]",
          "trajectory.n=1", "render.width=64", "render.height=48", "render.max_frames=4",
-         "render.modalities=[rgb,depth,relative_depth,normals,flow,segmentation,point_cloud]"]
+         "render.modalities=[rgb,depth,relative_depth,normals,flow,segmentation,point_cloud]",
+         # depth stages: the built-in estimators only, a tiny U-Net trained for two steps, no external data set
+         "depth.methods=[physics,cnn,cnn_pretrained]", "depth.cnn.input_size=32", "depth.cnn.channels=[4,8]",
+         "depth.train.batch_size=2", "depth.train.pretrain_scenes=1", "depth.train.pretrain_views=2",
+         "depth.train.pretrain_steps=2", "depth.train.finetune_steps=2", "depth.train.holdout_fraction=0.34",
+         "depth.train.holdout_gap_frames=0", "depth.train.eval_stride=1", "depth.train.simcol_dir=null"]
 P = "@patient_000"
 ANATOMY = {f"{s}{P}" for s in ("segment", "sdf", "mesh", "validate_anatomy", "medial_axis",
                                "validate_centreline")} | {f"{s}{P}-sequence_000" for s in ("trajectory", "simulate",
                                                                                              "render")}
+
+#: outputs outside metrics/ that hold wall times, so two runs differ there (none: timings go to metrics/)
+TIMED: set = set()
+
+
+def _dvc_name(stage: str) -> str:
+    fan = FAN_OUT[stage]
+    return stage if fan == "dataset" else f"{stage}{P}-sequence_000" if fan == "sequences" else f"{stage}{P}"
+
+
+#: the stages after render (sensor noise, evaluations, tables): they all read what it renders
+DOWNSTREAM = {_dvc_name(s) for s in STAGES[STAGES.index("render") + 1:]}
 
 pytestmark = pytest.mark.slow
 
@@ -47,7 +66,7 @@ def project(tmp_path_factory):
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO,
                            capture_output=True, text=True, check=True).stdout.split()
     for f in files:
-        if f.startswith("data/") or f == "dvc.lock":   # generated outputs of a local run stay behind
+        if f.startswith("data/output/") or f == "dvc.lock":   # generated outputs of a local run stay behind
             continue
         if (REPO / f).is_file():
             (dst / f).parent.mkdir(parents=True, exist_ok=True)
@@ -63,7 +82,7 @@ def _ran(output: str) -> set[str]:
 
 def test_dvc_repro_caches_and_reruns_only_what_changed(project):
     first = _sh(["dvc", "repro"], project).stdout
-    assert _ran(first) == ANATOMY | {f"phantom{P}"}
+    assert _ran(first) == ANATOMY | DOWNSTREAM | {f"phantom{P}"}
     again = _sh(["dvc", "repro"], project).stdout
     assert _ran(again) == set(), again
     status = _sh(["dvc", "status"], project).stdout
@@ -75,7 +94,7 @@ def test_dvc_repro_caches_and_reruns_only_what_changed(project):
     _sh(["room", "params", *SMALL, "mesh.smoothing_iterations=3"], project)
     out = _sh(["dvc", "repro"], project).stdout
     assert _ran(out) == {f"mesh{P}", f"validate_anatomy{P}", f"simulate{P}-sequence_000",
-                         f"render{P}-sequence_000"}, out
+                         f"render{P}-sequence_000"} | DOWNSTREAM, out
 
     # a segmentation parameter that changes the mask: segment and everything downstream of it
     # (DVC hashes content: a parameter change that leaves the mask byte-identical stops at segment)
@@ -84,7 +103,7 @@ def test_dvc_repro_caches_and_reruns_only_what_changed(project):
     ran = _ran(out)
     assert f"phantom{P}" not in ran
     # per-sequence stages rerun only if the centreline graph, SDF or mesh actually changed
-    assert {s for s in ANATOMY if "sequence" not in s} <= ran <= ANATOMY, out
+    assert {s for s in ANATOMY if "sequence" not in s} <= ran <= ANATOMY | DOWNSTREAM, out
 
 
 def test_room_run_reproduces_dvc_bytes(project):
@@ -97,11 +116,43 @@ def test_room_run_reproduces_dvc_bytes(project):
     shutil.rmtree(out)
     _sh(["room", "run", *SMALL], project)
     ref = snapshot / "patient_000"
-    files = [p for p in ref.rglob("*") if p.is_file() and "metrics" not in p.parts and p.name != ".gitignore"]
+    files = [p for p in ref.rglob("*") if p.is_file() and "metrics" not in p.parts and p.name != ".gitignore"
+             and p.relative_to(ref).as_posix() not in TIMED]
     assert len(files) >= 8
     for p in files:
         rel = p.relative_to(ref)
         assert p.read_bytes() == (out / "patient_000" / rel).read_bytes(), f"{rel} differs"
+    # `room run` ends with <output_dir>/manifest.json: intact, and the same files and config as what DVC made
+    # (metrics hold wall times, run_config.yaml is room run's own, .gitignore files are DVC's)
+    from omegaconf import OmegaConf
+
+    from room_pipeline.execution import build_manifest, compare_manifests, read_manifest, verify_manifest
+
+    assert verify_manifest(out) == []
+    made = read_manifest(out)
+    assert made["extra"]["room_run"]["patient"] == "patient_000"
+    assert any(f["path"] == "patient_000/run_config.yaml" for f in made["files"])
+    by_dvc = build_manifest(snapshot, OmegaConf.to_container(OmegaConf.load(project / "params.yaml"), resolve=True))
+    # evaluation/ holds the methods' run times (seconds per frame: a column of the paper's tables)
+    ignore = ("*/metrics/*", "*/run_config.yaml", "*.gitignore", "evaluation/*", *(f"patient_000/{t}" for t in TIMED))
+    diffs = compare_manifests(by_dvc, made, ignore_files=ignore)
+    assert diffs == [], "\n".join(diffs)
+
+
+def test_room_run_multirun_sweeps_into_two_datasets(project):
+    """`room run -m`: one run per sweep point (here two output folders), each with its manifest, same bytes."""
+    from room_pipeline.execution import compare_manifests, read_manifest, verify_manifest
+
+    r = _sh(["room", "run", "-m", "--until", "phantom", *SMALL, "output_dir=data/mr0,data/mr1",
+             "hydra.sweep.dir=multirun/e2e"], project)
+    assert "Launching 2 jobs locally" in r.stdout + r.stderr
+    a, b = project / "data" / "mr0", project / "data" / "mr1"
+    assert verify_manifest(a) == [] and verify_manifest(b) == []
+    ma, mb = read_manifest(a), read_manifest(b)
+    assert ma["config"]["output_dir"] == "data/mr0" and (a / "patient_000" / "input" / "ct.nii.gz").is_file()
+    where = ("execution", "output_dir", "patients.patient_000.input")      # the input path follows output_dir
+    assert compare_manifests(ma, mb, ignore_config=where, ignore_files=("*/metrics/*", "*/run_config.yaml")) == []
+    assert (project / "multirun" / "e2e" / "1" / ".hydra" / "overrides.yaml").is_file()
 
 
 def test_rendered_files_are_read_by_standard_tools(project):

@@ -5,9 +5,11 @@
         `trajectory` take PATIENT/SEQUENCE; what dvc.yaml calls).  The
         config is the composition of conf/ with the Hydra overrides given, or,
         with --params, that composed file plus dot-list overrides.
-    room run [--patient ID] [--until STAGE] [hydra overrides ...]
+    room run [-m] [--patient ID] [--until STAGE] [hydra overrides ...]
         Run the stages in order for one patient into output_dir, each in its
-        own process (as DVC does), stopping after --until.
+        own process (as DVC does), stopping after --until; then write
+        <output_dir>/manifest.json.  -m/--multirun: a Hydra multirun, one
+        run per point of the sweep (key=a,b, hydra/launcher=...).
     room params [--check] [hydra overrides ...]
         Write params.yaml as the composition of conf/ (what `dvc exp run`
         does); --check only reports whether params.yaml is up to date.
@@ -53,26 +55,38 @@ def cmd_stage(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_run(args: argparse.Namespace) -> int:
+def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> int:
+    """Run the stages in order for one patient with the composed config ``cfg``; 0 or the failed stage's exit status.
+
+    Each stage runs in its own process from ``<output_dir>/<patient>/run_config.yaml`` (as DVC runs them
+    from params.yaml).  The patient is ``patient``, else the config's ``patient`` key (``+patient=ID``, e.g.
+    swept by ``room run -m``), else the first configured.  After the last stage, ``<output_dir>/manifest.json``
+    lists every file under output_dir with its sha256, the resolved config and the library versions.
+    """
+    import importlib
+
     from omegaconf import OmegaConf
 
     from . import stages
-    from .config.compose import compose, patient_entry
+    from .config.compose import patient_entry
     from .io.atomic import write_text
 
-    cfg = compose(args.overrides)
+    # imported by name (like TOOLS): `room stage`, which dvc.yaml runs, does not depend on `room run`'s manifest code
+    write_manifest = importlib.import_module("room_pipeline.execution.manifest").write_manifest
+
     patients = list(cfg.get("patients") or {})
     if not patients:
         raise RoomError("no patients configured")
-    patient = args.patient or patients[0]
+    patient = patient or cfg.get("patient") or patients[0]
     patient_entry(cfg, patient)  # validates
     is_phantom = patient in (cfg.get("phantoms") or {})
     order = [s for s in stages.STAGES if is_phantom or stages.FAN_OUT[s] != "phantoms"]
-    if args.until:
-        if args.until not in order:
-            raise RoomError(f"--until {args.until}: not a stage of this run ({', '.join(order)})")
-        order = order[: order.index(args.until) + 1]
-    run_dir = Path(cfg.output_dir) / patient
+    if until:
+        if until not in order:
+            raise RoomError(f"--until {until}: not a stage of this run ({', '.join(order)})")
+        order = order[: order.index(until) + 1]
+    output_dir = Path(cfg.output_dir)
+    run_dir = output_dir / patient
     config_path = run_dir / "run_config.yaml"
     write_text(config_path, OmegaConf.to_yaml(cfg))
     for name in order:
@@ -86,7 +100,63 @@ def cmd_run(args: argparse.Namespace) -> int:
             if rc != 0:
                 print(f"room: error: stage '{name}' failed for {key} (exit {rc})", file=sys.stderr)
                 return rc
-    print(f"room run: done -> {run_dir}")
+    manifest = write_manifest(output_dir, OmegaConf.to_container(cfg, resolve=True),
+                              extra={"room_run": {"patient": patient, "stages": order}})
+    print(f"room run: done -> {run_dir} (manifest: {manifest})")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    if args.multirun:
+        return multirun(args.overrides, args.patient, args.until)
+    from .config.compose import compose
+
+    return run_pipeline(compose(args.overrides), args.patient, args.until)
+
+
+def multirun(overrides: list[str], patient: str | None = None, until: str | None = None) -> int:
+    """``room run -m``: a Hydra multirun of :func:`run_pipeline`, one job per point of the sweep.
+
+    The overrides are Hydra's (``key=a,b`` sweeps, ``hydra/launcher=...``, ``hydra.sweep.dir=...``); the jobs
+    run one after the other with the default launcher and the sweep stops at the first failed job (its exit
+    status is returned).  Hydra writes its own records under ``hydra.sweep.dir`` (default
+    ``multirun/<date>/<time>``); ``hydra.job.chdir=False`` keeps the working directory, so a relative
+    ``output_dir`` means the same folder as for ``room run``.
+    """
+    import hydra
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf, open_dict
+
+    from .config.compose import CONFIG_NAME, find_conf_dir
+
+    conf = find_conf_dir()
+    cwd = Path.cwd()
+
+    @hydra.main(config_path=str(conf), config_name=CONFIG_NAME, version_base=None)
+    def job(cfg) -> int:
+        OmegaConf.resolve(cfg)
+        if Path.cwd() != cwd and not Path(cfg.output_dir).is_absolute():   # a launcher that changed directory
+            with open_dict(cfg):
+                cfg.output_dir = str(cwd / cfg.output_dir)
+        print(f"room run -m: job {HydraConfig.get().job.num}: {' '.join(HydraConfig.get().overrides.task)}",
+              flush=True)
+        try:
+            rc = run_pipeline(cfg, patient, until)
+        except RoomError as exc:
+            print(f"room: error: {exc}", file=sys.stderr)
+            rc = 2
+        if rc:
+            raise SystemExit(rc)          # not an Exception: Hydra does not catch it, the sweep stops here
+        return 0
+
+    argv = sys.argv
+    sys.argv = ["room run -m", "--multirun", "hydra.job.chdir=False", "hydra.job.name=room_run", *overrides]
+    try:
+        job()
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else 1
+    finally:
+        sys.argv = argv
     return 0
 
 
@@ -142,6 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run the stages in order for one patient")
     r.add_argument("--patient", help="patient id (default: the first configured)")
     r.add_argument("--until", help="stop after this stage")
+    r.add_argument("-m", "--multirun", action="store_true",
+                   help="Hydra multirun: one run per point of the sweep (key=a,b ...; hydra/launcher=...)")
     r.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. phantom.spacing_mm=[1,1,1]")
     r.set_defaults(func=cmd_run)
 

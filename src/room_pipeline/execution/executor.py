@@ -41,6 +41,7 @@ import dataclasses
 import math
 import multiprocessing
 import os
+import sys
 import pickle
 import shutil
 import tempfile
@@ -133,8 +134,11 @@ class _Base:
     def _progress(self, total: int, desc: str):
         from tqdm import tqdm
 
-        # disable=None: a bar only on a terminal, nothing in logs
-        return tqdm(total=total, desc=desc or self.backend, unit="item", disable=None, leave=False)
+        from ..progress import enabled
+
+        # a bar only on an interactive terminal outside CI (ROOM_PROGRESS=0/1 overrides): nothing in logs
+        return tqdm(total=total, desc=desc or self.backend, unit="item", disable=not enabled(), leave=False,
+                    file=sys.stderr)
 
 
 def _build_state(init: Init | None) -> Any:

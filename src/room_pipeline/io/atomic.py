@@ -1,7 +1,11 @@
 """Atomic file writes: write to a temporary file in the target folder, then rename.
 
 A reader never sees a half-written output, and a crash leaves the previous
-version (or nothing) in place.
+version (or nothing) in place.  Files get the mode a plain ``open(path, "w")``
+would give (``0o666`` less the process umask), not ``mkstemp``'s ``0o600``.
+An ``OSError`` while writing or renaming (permission denied, disk full, file
+too large, read-only file system) becomes a one-line :class:`InputError`
+naming the file; the temporary file is removed.
 """
 from __future__ import annotations
 
@@ -14,6 +18,26 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from ..errors import InputError
+
+
+def _read_umask() -> int:
+    """The process umask, read without changing it where Linux reports it (else set and restored at once)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+#: permission bits of every file written here (read once, at import)
+FILE_MODE = 0o666 & ~_read_umask()
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
@@ -23,18 +47,26 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     libraries that pick a format from the file name still work.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if suffix is None:
         suffix = "".join(path.suffixes)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix}", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path: Path | None = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix}", dir=path.parent)
+        tmp_path = Path(tmp)
+        try:
+            os.fchmod(fd, FILE_MODE)
+        finally:
+            os.close(fd)
         yield tmp_path
         os.replace(tmp_path, path)
+    except OSError as exc:
+        reason = (exc.strerror or str(exc) or type(exc).__name__).strip().splitlines()[0]
+        raise InputError(f"cannot write {path}: {reason}") from exc
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        if tmp_path is not None:
+            with contextlib.suppress(OSError):
+                tmp_path.unlink()
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -13,10 +13,25 @@ colour), ``segmentation/frame_NNNN.png`` (uint16: airway branch id + 1, 0 =
 no hit) with ``segmentation/legend.json`` (label -> branch id, generation),
 ``calibration/camera_params.json`` and ``metadata/render.json`` (renderer,
 exposure, per-frame source index, timestamp, camera-to-world pose).
+
+Execution (config section ``execution``, :mod:`room_pipeline.execution`):
+the frames of the sequence fan out over the executor's workers (serial, local
+processes or Ray actors), each building its renderers once
+(:func:`_frame_worker`) and rendering contiguous ranges of frame indices
+(:func:`_render_frame` writes the frame's files atomically and returns its
+record).  Everything computed once per sequence is computed here, before the
+fan-out: face labels, the automatic exposure (the ray caster's and, with
+backend ``cycles``, Cycles' own, on the film's reference frame) and the
+renderer metadata; the workers get the exposure fixed.  So the backend and the
+number of workers change no byte of the outputs.
 """
 from __future__ import annotations
 
 import dataclasses
+import os
+import resource
+import sys
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -28,11 +43,11 @@ from ..config.compose import section
 from ..config.params import params_from_dict
 from ..conventions import MM, metadata_block
 from ..errors import ConfigError, InputError
+from ..execution import ExecutionParams, ensure_writable, make_executor, remove_stale_temp_files
 from ..io.atomic import write_json
 from ..io.images import write_exr, write_flo, write_png8, write_png16
 from ..io.mesh import Mesh, read_obj
 from ..render.camera import CameraIntrinsics
-from ..progress import progress
 from ..render.scene import Film, Scene, TipLight, TissueMaterial
 from ..render.texture import MucosaTexture
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
@@ -121,24 +136,43 @@ def load_poses(meta_dir, which: str) -> tuple[np.ndarray, np.ndarray]:
     return np.array([f["timestamp"] for f in doc["frames"]]), np.array([f["pose"] for f in doc["frames"]])
 
 
+def execution_params(cfg: DictConfig) -> ExecutionParams:
+    """The ``execution`` section (defaults when absent); ``local`` with one worker runs in this process.
+
+    One spawned process would only add its start-up time: the frames are the
+    same bytes either way.
+    """
+    p = ExecutionParams.from_dict(section(cfg, "execution") if "execution" in cfg else None)
+    if p.backend == "local" and p.workers == 1:
+        return dataclasses.replace(p, backend="serial")
+    return p
+
+
+def _cycles_settings(p: RenderParams, **kw: Any):
+    from ..render.blender import CyclesSettings
+
+    return CyclesSettings.from_dict({"samples": p.cycles_samples, "denoise": p.cycles_denoise, **kw})
+
+
 class _Renderers:
     """The fast ray caster for every geometric modality; with backend 'cycles' the RGB comes from Cycles.
 
     The product writes geometric depth, normals and flow in both cases: Cycles' passes agree with them
     (depth 2e-5 relative, flow 0.007 px; tests/test_blender.py) but its vector pass blends the two
-    surfaces at silhouettes, where the geometric flow is exact.
+    surfaces at silhouettes, where the geometric flow is exact.  ``nthreads``: Open3D casting threads
+    (0 = all cores); ``cycles_ev`` (stops) and ``cycles_threads`` (0 = all cores) for Cycles.
     """
 
-    def __init__(self, scene: Scene, p: RenderParams) -> None:
-        from ..render.raycast import RaycastRenderer
+    def __init__(self, scene: Scene, p: RenderParams, nthreads: int = 0, cycles_ev: float | None = None,
+                 cycles_threads: int = 0) -> None:
+        from ..render.raycast import RaycastConfig, RaycastRenderer
 
-        self.raycast = RaycastRenderer(scene)
+        self.raycast = RaycastRenderer(scene, RaycastConfig(nthreads=nthreads))
         self.cycles = None
         if p.backend == "cycles":
-            from ..render.blender import CyclesRenderer, CyclesSettings
+            from ..render.blender import CyclesRenderer
 
-            self.cycles = CyclesRenderer(scene, CyclesSettings.from_dict({"samples": p.cycles_samples,
-                                                                         "denoise": p.cycles_denoise}))
+            self.cycles = CyclesRenderer(scene, _cycles_settings(p, exposure=cycles_ev, threads=cycles_threads))
 
     def render(self, i: int, mods: set) -> dict:
         if self.cycles is None:
@@ -152,22 +186,120 @@ class _Renderers:
                 out["point_cloud_colors"] = out["rgb"][out["hit"]]
         return out
 
-    def metadata(self) -> dict:
-        meta = self.raycast.metadata()
-        if self.cycles is not None:
-            meta = {"rgb": {"backend": "blender_cycles", "exposure_ev": self.cycles.exposure_ev,
-                            "settings": dataclasses.asdict(self.cycles.settings)},
-                    "geometry": meta}
-        return meta
-
     def close(self) -> None:
         if self.cycles is not None:
             self.cycles.close()
 
 
+def _exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | None]:
+    """What is computed once per sequence, in the driver: (renderer metadata, ray-caster EV, Cycles EV).
+
+    Both automatic exposures are chosen on the film's reference frame by the
+    renderer that uses them (Cycles renders that frame once here, with the film
+    as configured); the metadata is the ray caster's with its default config.
+    """
+    from ..render.raycast import RaycastRenderer
+
+    cycles_ev, settings = None, None
+    if p.backend == "cycles":
+        from ..render.blender import CyclesRenderer
+
+        settings = _cycles_settings(p)
+        with CyclesRenderer(scene, settings) as cy:
+            cycles_ev = cy.exposure_ev
+    probe = RaycastRenderer(scene)
+    meta = probe.metadata()                      # computes the automatic EV (one cast of the reference frame)
+    ev = probe.exposure_ev
+    if settings is not None:
+        meta = {"rgb": {"backend": "blender_cycles", "exposure_ev": cycles_ev,
+                        "settings": dataclasses.asdict(settings)},
+                "geometry": meta}
+    return meta, ev, cycles_ev
+
+
+def _drop_inherited_bpy_paths() -> None:
+    """Let ``import bpy`` work in a worker spawned by a process that had imported bpy.
+
+    Importing bpy puts Blender's script folders (``.../site-packages/bpy/<ver>/scripts/...``) on
+    ``sys.path``; a spawned process inherits that ``sys.path``, so its ``import bpy`` would find
+    Blender's inner ``bpy`` package (which needs the ``_bpy`` built-in) instead of the bpy module.
+    Until bpy is imported here, those folders are dropped.
+    """
+    if "bpy" not in sys.modules:
+        marker = f"{os.sep}site-packages{os.sep}bpy{os.sep}"
+        sys.path[:] = [d for d in sys.path if marker not in d]
+
+
+def _frame_worker(scene: Scene, p: RenderParams, seq: str, src: np.ndarray, ts: np.ndarray, poses: np.ndarray,
+                  nthreads: int, cycles_ev: float | None, cycles_threads: int) -> dict:
+    """Per-worker state, built once: the renderers (BVH, Blender scene) and what names and records a frame."""
+    if p.backend == "cycles":
+        _drop_inherited_bpy_paths()
+    r = _Renderers(scene, p, nthreads=nthreads, cycles_ev=cycles_ev, cycles_threads=cycles_threads)
+    if r.cycles is not None:     # spawned workers end without running weakref finalizers: remove Cycles' temp dir
+        import multiprocessing.util
+
+        multiprocessing.util.Finalize(r, r.cycles.close, exitpriority=10)
+    return {"r": r, "seq": Path(seq), "mods": set(p.modalities), "src": src, "ts": ts, "poses": poses}
+
+
+def _render_frame(state: dict, i: int) -> dict:
+    """Render frame ``i``, write its files (atomically) and return its record and summary numbers."""
+    seq, src, ts, poses = state["seq"], state["src"], state["ts"], state["poses"]
+    out = state["r"].render(i, state["mods"])
+    name = f"frame_{i:04d}"
+    hit = out["hit"]
+    rec = {"index": i, "source_index": int(src[i]), "timestamp": float(ts[src[i]]),
+           "pose": np.round(poses[src[i]], 12).tolist(), "hit_fraction": float(hit.mean())}
+    flow_valid = None
+    if "rgb" in out:
+        write_png8(seq / "rgb" / f"{name}.png", out["rgb"])
+    if "depth" in out:
+        write_exr(seq / "depth" / f"{name}.exr", np.where(hit, out["depth"], 0).astype(np.float32),
+                  channels=("Y",), attributes={"units": "m", "quantity": "planar z depth, 0 = no hit"})
+    if "relative_depth" in out:
+        write_png16(seq / "relative_depth" / f"{name}.png", out["relative_depth"])
+        rec["relative_depth_range_m"] = [float(x) for x in out["relative_depth_range"]]
+    if "normals" in out:
+        write_exr(seq / "surface_normals" / f"{name}.exr", out["normals"].astype(np.float32),
+                  attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
+    if "flow" in out:
+        write_flo(seq / "optical_flow" / f"{name}.flo", out["flow"].astype(np.float32))
+        write_png8(seq / "optical_flow" / f"valid_{i:04d}.png", (out["flow_valid"].astype(np.uint8) * 255))
+        flow_valid = float(out["flow_valid"].mean())
+    if "point_cloud" in out:
+        from ..render.raycast import write_point_cloud
+
+        write_point_cloud(seq / "point_clouds" / f"{name}.ply", out, i, poses[src[i]])
+    if "segmentation" in out:
+        write_png16(seq / "segmentation" / f"{name}.png", (out["segmentation"] + 1).astype(np.uint16))
+    return {"rec": rec, "hit": float(hit.mean()), "flow_valid": flow_valid, "pid": os.getpid(),
+            "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+
+
+def _peak_rss_mb(results: list[dict]) -> float:
+    """Peak resident memory (MB): this process plus each worker process's high-water mark.
+
+    The workers report their own ``ru_maxrss`` with every frame (local processes
+    and Ray actors alike); ``RUSAGE_CHILDREN`` covers children that ended
+    without reporting (it holds the largest one only).  Peaks of different
+    processes need not coincide, so this is an upper bound of the total.
+    """
+    me = os.getpid()
+    workers: dict[int, float] = {}
+    for r in results:
+        if r["pid"] != me:
+            workers[r["pid"]] = max(workers.get(r["pid"], 0.0), r["rss_mb"])
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    return own + max(sum(workers.values()), children)
+
+
 def run(cfg: DictConfig, key: str) -> dict:
     patient, sequence = split_key(key)
     p = RenderParams.from_dict(section(cfg, "render"))
+    ex_params = execution_params(cfg)
+    parallel = ex_params.backend != "serial" and ex_params.workers > 1
     paths = patient_paths(cfg, patient)
     seq = paths.sequence(sequence)
     with StageTimer() as timer:
@@ -177,6 +309,9 @@ def run(cfg: DictConfig, key: str) -> dict:
             src = src[: int(p.max_frames)]
         if len(src) == 0:
             raise InputError(f"{sequence}: no poses to render")
+        mods = set(p.modalities)
+        ensure_writable(*(seq / f for f in FOLDERS.values()), seq / "calibration", seq / "metadata")
+        remove_stale_temp_files(seq)
         mesh = read_obj(paths.mesh)
         labels, legend = face_labels(mesh, CentrelineGraph.from_dict(read_json(paths.centreline_graph)))
         cam = CameraIntrinsics.from_fov(p.width, p.height, p.fov_deg, p.near_mm * MM, p.far_mm * MM)
@@ -185,49 +320,23 @@ def run(cfg: DictConfig, key: str) -> dict:
                                               specular=p.specular, texture=texture_params(p.texture)),
                       light=TipLight(power_w=p.light_power_w, radius_m=p.light_radius_mm * MM),
                       film=Film(exposure_ev=p.exposure_ev, auto_target=p.auto_exposure_target), face_labels=labels)
-        renderer = _Renderers(scene, p)
-        mods = set(p.modalities)
-        for folder in FOLDERS.values():
-            (seq / folder).mkdir(parents=True, exist_ok=True)
-        frames, n_valid_flow, n_hit = [], [], []
-        for i in progress(range(len(src)), len(src), f"render {key}"):
-            out = renderer.render(i, mods)
-            name = f"frame_{i:04d}"
-            hit = out["hit"]
-            n_hit.append(float(hit.mean()))
-            rec = {"index": i, "source_index": int(src[i]), "timestamp": float(ts[src[i]]),
-                   "pose": np.round(poses[src[i]], 12).tolist(), "hit_fraction": float(hit.mean())}
-            if "rgb" in out:
-                write_png8(seq / "rgb" / f"{name}.png", out["rgb"])
-            if "depth" in out:
-                write_exr(seq / "depth" / f"{name}.exr", np.where(hit, out["depth"], 0).astype(np.float32),
-                          channels=("Y",), attributes={"units": "m", "quantity": "planar z depth, 0 = no hit"})
-            if "relative_depth" in out:
-                write_png16(seq / "relative_depth" / f"{name}.png", out["relative_depth"])
-                rec["relative_depth_range_m"] = [float(x) for x in out["relative_depth_range"]]
-            if "normals" in out:
-                write_exr(seq / "surface_normals" / f"{name}.exr", out["normals"].astype(np.float32),
-                          attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
-            if "flow" in out:
-                write_flo(seq / "optical_flow" / f"{name}.flo", out["flow"].astype(np.float32))
-                write_png8(seq / "optical_flow" / f"valid_{i:04d}.png",
-                           (out["flow_valid"].astype(np.uint8) * 255))
-                n_valid_flow.append(float(out["flow_valid"].mean()))
-            if "point_cloud" in out:
-                from ..render.raycast import write_point_cloud
-
-                write_point_cloud(seq / "point_clouds" / f"{name}.ply", out, i, poses[src[i]])
-            if "segmentation" in out:
-                write_png16(seq / "segmentation" / f"{name}.png", (out["segmentation"] + 1).astype(np.uint16))
-            frames.append(rec)
-        renderer.close()
+        renderer_meta, ev, cycles_ev = _exposure_once(scene, p)
+        scene.film = dataclasses.replace(scene.film, exposure_ev=ev)      # every worker: the same fixed EV
+        nthreads = 1 if parallel else 0                                   # Open3D: one thread per worker
+        cycles_threads = max(1, (os.cpu_count() or 1) // ex_params.workers) if parallel else 0
+        init = (_frame_worker, (scene, p, str(seq), src, ts, poses, nthreads, cycles_ev, cycles_threads))
+        with make_executor(ex_params, init=init) as ex:
+            results = ex.map(_render_frame, range(len(src)), desc=f"render {key}")
+        frames = [r["rec"] for r in results]
+        n_hit = [r["hit"] for r in results]
+        n_valid_flow = [r["flow_valid"] for r in results if r["flow_valid"] is not None]
     if "segmentation" in mods:
         write_json(seq / "segmentation" / "legend.json",
                    {"encoding": "uint16 PNG: label = airway branch id + 1, 0 = no hit",
                     "branch_ids": "centreline_graph.json ids", "labels": legend})
     write_json(seq / "calibration" / "camera_params.json", cam.to_dict())
     write_json(seq / "metadata" / "render.json", {
-        "renderer": renderer.metadata(),
+        "renderer": renderer_meta,
         "poses": p.poses, "modalities": sorted(mods), "frames": frames,
         "flow": "forward t -> t+1 in pixels (u right, v down); the last frame has zero flow and no valid pixel",
         "conventions": metadata_block(),
@@ -235,6 +344,6 @@ def run(cfg: DictConfig, key: str) -> dict:
     metrics = {"frames": len(frames), "hit_fraction_mean": round(float(np.mean(n_hit)), 6),
                "flow_valid_fraction_mean": round(float(np.mean(n_valid_flow)), 6) if n_valid_flow else None,
                "wall_time_s": round(timer.wall_s, 3), "frames_per_s": round(len(frames) / timer.wall_s, 3),
-               "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
+               "peak_rss_mb": round(_peak_rss_mb(results), 1), "workers": ex_params.workers}
     write_metrics(paths, f"render_{sequence}", metrics)
     return metrics

@@ -216,13 +216,16 @@ def run(cfg: DictConfig, patient: str) -> dict:
         finetune={"frames": len(ft_data), "steps": tp.finetune_steps,
                   "loss_first": ft_losses[0] if ft_losses else None,
                   "loss_last_10_mean": float(np.mean(ft_losses[-10:])) if ft_losses else None},
-        checkpoints={w: {"path": str(checkpoint_path(cfg.output_dir, patient, w)), "sha256": h}
+        checkpoints={w: {"path": os.path.relpath(checkpoint_path(cfg.output_dir, patient, w), cfg.output_dir),
+                         "sha256": h}
                      for w, h in sha.items()},
         times_s={"synthetic_data": t_syn, "pretrain": t_pre, "finetune_data": t_data, "finetune": t_ft,
                  "evaluation": t_eval, "total": timer.wall_s, "cpu_total": time.process_time() - cpu0})
     training = round_floats(training, 6)
+    # timings go to the metrics only: the data files are the same bytes for the same data and seed
     write_json(model_dir / "training.json",
-               _finite({**training, "metadata": metadata("train_depth", patient, cfg, ("depth",))}))
+               _finite({**{k: v for k, v in training.items() if k != "times_s"},
+                        "metadata": metadata("train_depth", patient, cfg, ("depth",))}))
     write_text(model_dir / "training_log.csv", _log_csv(pre_losses, ft_losses))
     doc = {"datasets": {k: round_floats(v, 6) if isinstance(v, dict) else v for k, v in results.items()},
            "training": training}
