@@ -161,12 +161,13 @@ def ate(poses_gt: np.ndarray, poses_est: np.ndarray, registered: np.ndarray | No
         ) -> tuple[float, np.ndarray, Sim3 | None]:
     """ATE RMSE (mm) of the registered centres after Sim(3) alignment, per-frame errors (mm, NaN if unregistered).
 
-    Ground truth in metres.  Fewer than 2 registered frames: (NaN, all NaN, None).
+    Ground truth in metres.  Fewer than 3 registered frames: (NaN, all NaN, None) -- a similarity
+    maps any two points onto any other two exactly, so an ATE of two frames would read as a perfect 0.
     """
     gt, est = _as_poses(poses_gt, "ground-truth poses"), _as_poses(poses_est, "estimated poses")
     reg = registered_mask(est, registered)
     per = np.full(len(gt), np.nan)
-    if reg.sum() < 2:
+    if reg.sum() < 3:
         return float("nan"), per, None
     sim = umeyama_sim3(est[reg, :3, 3], gt[reg, :3, 3])
     d = np.linalg.norm(sim.apply(est[reg, :3, 3]) - gt[reg, :3, 3], axis=1) * 1e3
