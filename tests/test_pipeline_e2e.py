@@ -90,6 +90,11 @@ def test_dvc_repro_caches_and_reruns_only_what_changed(project):
     m = json.loads(_sh(["dvc", "metrics", "show", "--json"], project).stdout)
     assert m, "dvc metrics show returned nothing"
 
+    # a render parameter: exactly render and what is downstream of it (noise, evaluations, tables)
+    _sh(["room", "params", *SMALL, "render.base_color=[0.7,0.5,0.54]"], project)   # changes every RGB byte
+    out = _sh(["dvc", "repro"], project).stdout
+    assert _ran(out) == {f"render{P}-sequence_000"} | DOWNSTREAM, out
+
     # a mesh parameter: only mesh and what reads the mesh (validation, simulation, rendering) rerun
     _sh(["room", "params", *SMALL, "mesh.smoothing_iterations=3"], project)
     out = _sh(["dvc", "repro"], project).stdout
