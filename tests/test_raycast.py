@@ -9,7 +9,7 @@ import pytest
 from room_pipeline.io.mesh import Mesh
 from room_pipeline.io.ply import read_ply
 from room_pipeline.render import flow as fm
-from room_pipeline.render.camera import CameraIntrinsics
+from room_pipeline.render.camera import CameraIntrinsics, look_at
 from room_pipeline.render.raycast import (MODALITIES, RaycastConfig, RaycastRenderer, decode_relative_depth16,
                                           relative_depth16, write_point_cloud)
 from room_pipeline.render.scene import Film, Scene, TipLight, TissueMaterial
@@ -44,16 +44,7 @@ def quad(z, half=0.2, centre=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
 
 def look(eye, forward, down=(0.0, 1.0, 0.0)) -> np.ndarray:
     """Camera-to-world pose at ``eye`` looking along ``forward`` (OpenCV: x right, y down, z forward)."""
-    z = np.asarray(forward, float)
-    z /= np.linalg.norm(z)
-    y = np.asarray(down, float) - np.dot(down, z) * z
-    if np.linalg.norm(y) < 1e-9:
-        y = np.cross(z, [1.0, 0, 0])
-    y /= np.linalg.norm(y)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([np.cross(y, z), y, z], axis=1)
-    T[:3, 3] = eye
-    return T
+    return look_at(eye, forward, down)
 
 
 def scene(mesh, poses, **kw) -> Scene:
@@ -366,3 +357,16 @@ def test_exposure_fixed_and_auto():
     lin3 = r3.render(1, {"rgb"})["rgb_linear"]
     assert np.allclose(lin3, 2 * out["rgb_linear"], rtol=1e-5)
     assert r3.metadata()["exposure_ev"] == ev + 1
+
+
+def test_look_at_is_a_right_handed_opencv_pose_even_when_down_is_parallel():
+    for fwd, down in (([0.0, 0.0, 1.0], [0.0, 1.0, 0.0]), ([1.0, 2.0, -0.5], [0.3, -1.0, 0.2]),
+                      ([0.0, 1.0, 0.0], [0.0, 2.0, 0.0])):                      # last: down parallel to forward
+        T = look_at([1.0, 2.0, 3.0], fwd, down)
+        R = T[:3, :3]
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        np.testing.assert_allclose(R[:, 2], np.array(fwd) / np.linalg.norm(fwd), atol=1e-12)
+        np.testing.assert_array_equal(T[:3, 3], [1.0, 2.0, 3.0])
+    # the image's down axis (camera y) leans toward the requested down direction
+    assert look_at([0, 0, 0], [0, 0, 1], [0.2, 1.0, 0.0])[:3, 1] @ [0.2, 1.0, 0.0] > 0

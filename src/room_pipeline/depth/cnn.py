@@ -69,7 +69,7 @@ from ..errors import BackendUnavailable, ConfigError, InputError
 from ..io.atomic import write_bytes
 from ..io.images import read_png
 from ..io.mesh import Mesh
-from ..render.camera import CameraIntrinsics
+from ..render.camera import CameraIntrinsics, look_at
 from .estimators import Estimator, Frame, Sample
 from .metrics import valid_gt
 
@@ -298,18 +298,6 @@ def curved_tube(rng: np.random.Generator, n_s: int = 72, n_theta: int = 48):
     return Mesh(v.reshape(-1, 3), faces), centre, tangent, s, r0
 
 
-def _look(eye: np.ndarray, forward: np.ndarray, down: np.ndarray) -> np.ndarray:
-    zc = forward / np.linalg.norm(forward)
-    y = down - np.dot(down, zc) * zc
-    if np.linalg.norm(y) < 1e-9:
-        y = np.cross(zc, [1.0, 0.0, 0.0])
-    y /= np.linalg.norm(y)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([np.cross(y, zc), y, zc], axis=1)
-    T[:3, 3] = eye
-    return T
-
-
 def synthetic_tube_set(n_scenes: int, views: int, size: int, seed: int, valid_range_m: Sequence[float],
                        render_scale: int = 2) -> ArrayDataset:
     """The pretraining data: ``n_scenes`` random tubes x ``views`` camera poses inside each, rendered with the
@@ -333,7 +321,7 @@ def synthetic_tube_set(n_scenes: int, views: int, size: int, seed: int, valid_ra
             axis = rng.normal(size=3)
             fwd = tangent[j] + np.tan(np.radians(rng.uniform(0, 25))) * (axis - np.dot(axis, tangent[j]) * tangent[j]) \
                 / max(np.linalg.norm(axis - np.dot(axis, tangent[j]) * tangent[j]), 1e-12)
-            poses.append(_look(centre[j] + radial, fwd, rng.normal(size=3)))
+            poses.append(look_at(centre[j] + radial, fwd, rng.normal(size=3)))
         base = np.clip(np.array([0.80, 0.50, 0.54]) + rng.uniform(-0.15, 0.15, 3), 0.05, 1.0)
         scene = Scene(mesh, cam, np.array(poses), np.arange(views) * 0.1,
                       material=TissueMaterial(base_color=tuple(base), roughness=rng.uniform(0.25, 0.6)),

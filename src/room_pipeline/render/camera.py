@@ -78,3 +78,20 @@ class CameraIntrinsics:
         return CameraIntrinsics(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
                                 float(d["cx"]), float(d["cy"]), float(d.get("near_m", 1e-4)),
                                 float(d.get("far_m", 0.5)), tuple(d.get("distortion", (0.0,) * 5)))
+
+
+def look_at(eye, forward, down=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """Camera-to-world pose (4x4, OpenCV frame: x right, y down, z forward) at ``eye`` looking along
+    ``forward``, with the image's down direction as close to ``down`` as possible (any vector; if it is
+    parallel to ``forward`` a perpendicular one is picked).  Lengths in the caller's units (metres here)."""
+    z = np.asarray(forward, dtype=float)
+    z = z / np.linalg.norm(z)
+    d = np.asarray(down, dtype=float)
+    y = d - np.dot(d, z) * z
+    if np.linalg.norm(y) < 1e-9:
+        y = np.cross(z, [1.0, 0.0, 0.0])
+    y = y / np.linalg.norm(y)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([np.cross(y, z), y, z], axis=1)
+    T[:3, 3] = eye
+    return T

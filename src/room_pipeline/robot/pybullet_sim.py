@@ -127,7 +127,7 @@ class SimParams:
     settle_time_s: float = 0.3              # settling before the first frame
     ik_direction_weight_mm: float | None = None  # weight of the view direction in IK (null: l)
     controller_iterations: int = 2
-    mass_matrix_every: int = 1              # implicit: refresh the joint-space mass matrix every n steps (20 diverged)
+    mass_matrix_every: int = 1              # implicit: refresh the joint-space mass matrix every n steps
     max_rate_q1_mm_s: float = 16.0          # actuator rate limits of the command: tendon differential, mm/s
     max_rate_q2_deg_s: float = 90.0         # axial rotation, deg/s
     max_rate_q3_mm_s: float = 50.0          # insertion, mm/s
