@@ -32,6 +32,8 @@ Meshes
     ``lung_model.obj``: the closed lumen surface in world RAS+ metres, faces
     wound counter-clockwise seen from outside the lumen, so face normals point
     from air into tissue (the standard orientation of a closed solid).
+    ``collision_model.obj``: the same surface decimated for the scope physics,
+    same units and winding, within ``mesh.collision_max_error_mm`` of it.
 
 Cameras (later stages)
     OpenCV camera frame (x right, y down, z forward); poses are 4x4

@@ -92,6 +92,10 @@ class PatientPaths:
         return self.anatomy / "lung_model.obj"
 
     @property
+    def collision_mesh(self) -> Path:
+        return self.anatomy / "collision_model.obj"
+
+    @property
     def mesh_metadata(self) -> Path:
         return self.anatomy / "mesh_metadata.json"
 

@@ -67,6 +67,8 @@ class MeshParams:
     planar_quadric: bool = True
     tetrahedralize: bool = False
     tet_edge_length_fraction: float = 0.05
+    collision_decimation: float = 0.5
+    collision_max_error_mm: float = 0.25
 
     def __post_init__(self) -> None:
         if self.smoothing not in SMOOTHING:
@@ -81,6 +83,10 @@ class MeshParams:
             raise ConfigError(f"mesh.decimation_max_retries must be >= 0, got {self.decimation_max_retries}")
         if not (0.0 <= self.decimation_quality_threshold <= 1.0):
             raise ConfigError("mesh.decimation_quality_threshold must be in [0, 1]")
+        if not (0.0 < self.collision_decimation <= 1.0):
+            raise ConfigError(f"mesh.collision_decimation must be in (0, 1], got {self.collision_decimation}")
+        if self.collision_max_error_mm <= 0:
+            raise ConfigError(f"mesh.collision_max_error_mm must be > 0, got {self.collision_max_error_mm}")
         if not (0.0 < self.tet_edge_length_fraction < 1.0):
             raise ConfigError("mesh.tet_edge_length_fraction must be in (0, 1)")
 
@@ -96,6 +102,7 @@ class MeshResult:
 
     Attributes:
         mesh: closed lumen surface, world RAS+ metres, outward oriented.
+        collision: the scope simulation's copy of ``mesh``, decimated under ``collision_max_error_mm``.
         tets: (vertices (N,3) metres, tetrahedra (M,4) int64) or None.
         report: JSON-serialisable figures (counts, topology, volume m^3, area m^2, errors m).
     """
@@ -103,6 +110,7 @@ class MeshResult:
     mesh: Mesh
     tets: tuple[np.ndarray, np.ndarray] | None
     report: dict
+    collision: Mesh | None = None
 
 
 # --------------------------------------------------------------------------- topology
@@ -224,7 +232,7 @@ def _largest_component(mesh: Mesh) -> Mesh:
     return Mesh(mesh.vertices[used], newf.reshape(-1, 3))
 
 
-def _surface_distance(a: Mesh, b: Mesh, n_samples: int = 200_000, seed: int = 0) -> np.ndarray:
+def surface_distance(a: Mesh, b: Mesh, n_samples: int = 200_000, seed: int = 0) -> np.ndarray:
     """Distances (metres) from a's vertices and uniform samples on a's faces to surface b."""
     import open3d as o3d
 
@@ -260,7 +268,7 @@ def _decimate(mesh: Mesh, params: MeshParams, report: dict) -> Mesh:
             planarquadric=params.planar_quadric, autoclean=True)
         _clean(ms)
         dec = _from_ms(ms, scale)
-        d = np.concatenate([_surface_distance(dec, mesh), _surface_distance(mesh, dec)])
+        d = np.concatenate([surface_distance(dec, mesh), surface_distance(mesh, dec)])
         emax, e95 = float(d.max()), float(np.percentile(d, 95))
         topo = mesh_topology(dec)
         ok = emax <= max_err and e95 <= p95_err and topo["watertight"] and topo["manifold"]
@@ -337,4 +345,8 @@ def extract_surface(sdf: Volume, params: MeshParams) -> MeshResult:
     if params.tetrahedralize:
         tets = tetrahedralize(mesh, params.tet_edge_length_fraction)
         report.update(n_tets=int(len(tets[1])), n_tet_vertices=int(len(tets[0])))
-    return MeshResult(mesh=mesh, tets=tets, report=report)
+    from .collision import collision_surface
+
+    collision, report["collision"] = collision_surface(mesh, params.collision_decimation,
+                                                       params.collision_max_error_mm)
+    return MeshResult(mesh=mesh, tets=tets, report=report, collision=collision)

@@ -1,5 +1,8 @@
 """Stage `mesh`: SDF zero level -> watertight lumen surface ``lung_model.obj`` (metres).
 
+Also writes ``collision_model.obj``, the simulate stage's decimated copy of it
+(``room_pipeline.anatomy.collision``; its measured error is in ``mesh_metadata.json``).
+
 With ``mesh.tetrahedralize: true`` a tetrahedral volume mesh of the lumen is
 written to ``anatomy/volume_mesh/lung_model_tet.npz`` (arrays ``vertices`` in
 metres and ``tetrahedra``); ``volume_mesh/info.json`` always says whether it was made.
@@ -19,7 +22,7 @@ from .common import StageTimer, metadata, patient_paths, write_metrics
 
 def outputs(cfg: DictConfig, patient: str) -> list:
     p = patient_paths(cfg, patient)
-    return [p.mesh, p.mesh_metadata, p.anatomy / "volume_mesh"]
+    return [p.mesh, p.collision_mesh, p.mesh_metadata, p.anatomy / "volume_mesh"]
 
 
 def run(cfg: DictConfig, patient: str) -> dict:
@@ -31,6 +34,9 @@ def run(cfg: DictConfig, patient: str) -> dict:
     meta = metadata("mesh", patient, cfg, ("mesh",), report=res.report)
     write_obj(paths.mesh, res.mesh, header=f"room-pipeline lung_model (lumen surface) of {patient}\n"
                                            "normals point from air into tissue")
+    write_obj(paths.collision_mesh, res.collision,
+              header=f"room-pipeline collision_model (scope simulation copy of lung_model) of {patient}\n"
+                     "normals point from air into tissue")
     write_json(paths.mesh_metadata, meta)
     vm_dir = paths.anatomy / "volume_mesh"
     if res.tets is not None:
@@ -47,6 +53,8 @@ def run(cfg: DictConfig, patient: str) -> dict:
         write_json(vm_dir / "info.json", {"tetrahedralized": False,
                                           "reason": "mesh.tetrahedralize is false"})
     metrics = {k: v for k, v in res.report.items() if isinstance(v, (int, float, bool))}
+    col = res.report.get("collision", {})
+    metrics.update(collision_faces=col.get("faces"), collision_error_max_mm=round(col.get("error_max_mm", 0.0), 4))
     metrics.update(wall_time_s=round(timer.wall_s, 3), peak_rss_mb=round(timer.peak_rss_mb(), 1))
     write_metrics(paths, "mesh", metrics)
     return metrics

@@ -6,6 +6,9 @@ actual q, contact force, penetration, tracking error) and
 ``simulated_tum.txt`` (the actual camera poses in TUM format, which rendering
 uses).
 
+The wall is ``anatomy/collision_model.obj``, the mesh stage's decimated copy of
+the render mesh (its measured distance to it is copied into ``robot_config.json``).
+
 Modelling choice: the airway is open proximally.  The lumen mesh is closed at
 its top (the trachea entry of the phantom or the volume border of a CT), but a
 real airway continues to the larynx, and the scope's bending segment (50 mm)
@@ -64,7 +67,7 @@ def run(cfg: DictConfig, key: str) -> dict:
             arclength=np.array([f["arclength"] for f in frames]))
         graph = read_json(paths.centreline_graph)
         root_radius = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
-        mesh, n_dropped = open_entrance(read_obj(paths.mesh), traj.poses[0, :3, 3], traj.poses[0, :3, 2],
+        mesh, n_dropped = open_entrance(read_obj(paths.collision_mesh), traj.poses[0, :3, 3], traj.poses[0, :3, 2],
                                         root_radius)
         res = simulate(traj, mesh, params, geometry)
     report = {k: v for k, v in res.report.items() if k not in _TIMING_KEYS}
@@ -74,7 +77,10 @@ def run(cfg: DictConfig, key: str) -> dict:
     sim_doc = res.to_dict()
     sim_doc["report"] = report
     sim_doc["metadata"] = metadata("simulate", patient, cfg, ("simulate",), sequence=sequence)
+    collision = read_json(paths.mesh_metadata).get("report", {}).get("collision")
     write_json(meta_dir / "robot_config.json", {**robot_config(params, geometry),
+                                               "collision_mesh": {"file": paths.collision_mesh.name,
+                                                                  "units": "m; error bounds mm", **(collision or {})},
                                                "metadata": metadata("simulate", patient, cfg, ("simulate",))})
     write_json(meta_dir / "simulation.json", sim_doc)
     write_text(meta_dir / "simulated_tum.txt",

@@ -1,0 +1,80 @@
+"""The scope's collision surface (room_pipeline.anatomy.collision): decimation under a measured bound."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from room_pipeline.anatomy.collision import collision_surface
+from room_pipeline.anatomy.mesh import MeshParams, surface_distance
+from room_pipeline.errors import ConfigError
+from room_pipeline.io.mesh import Mesh
+
+
+def tube(radius=5e-3, length=40e-3, n_around=64, n_along=80, wobble=0.0) -> Mesh:
+    """An open cylinder (both ends open) along z, ~2 mm triangles, optionally bumpy."""
+    a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    z = np.linspace(0, length, n_along)
+    A, Z = np.meshgrid(a, z)
+    R = radius * (1 + wobble * np.sin(3 * A) * np.sin(40 * Z))
+    V = np.stack([R * np.cos(A), R * np.sin(A), Z], -1).reshape(-1, 3)
+    F = []
+    for i in range(n_along - 1):
+        for j in range(n_around):
+            p, q = i * n_around + j, i * n_around + (j + 1) % n_around
+            F += [[p, q, p + n_around], [q, q + n_around, p + n_around]]
+    return Mesh(V, np.array(F, np.int64))
+
+
+def two_sided_max_mm(a: Mesh, b: Mesh) -> float:
+    return float(np.concatenate([surface_distance(a, b), surface_distance(b, a)]).max() * 1e3)
+
+
+def test_bound_holds_and_faces_drop():
+    m = tube(wobble=0.05)
+    dec, rep = collision_surface(m, 0.5, 0.25)
+    assert dec.n_faces < 0.6 * m.n_faces
+    assert rep["error_max_mm"] <= 0.25
+    assert two_sided_max_mm(dec, m) <= 0.25 + 1e-6      # independently re-measured
+    assert rep["faces"] == dec.n_faces and rep["attempts"] >= 1
+
+
+def test_open_rims_stay_in_place():
+    m = tube()
+    dec, _ = collision_surface(m, 0.25, 0.3)
+    z = dec.vertices[:, 2]
+    assert z.min() == pytest.approx(0.0, abs=1e-9) and z.max() == pytest.approx(40e-3, abs=1e-9)
+
+
+def test_unreachable_bound_keeps_the_full_mesh():
+    m = tube(wobble=0.2)
+    dec, rep = collision_surface(m, 0.01, 1e-4, max_attempts=2)
+    assert dec.n_faces == m.n_faces and "note" in rep and rep["fraction"] == 1.0
+    np.testing.assert_array_equal(dec.vertices, m.vertices)
+
+
+def test_fraction_one_and_tiny_meshes_are_copies():
+    m = tube(n_around=8, n_along=4)                    # 48 faces: too small to decimate
+    for frac in (1.0, 0.3):
+        dec, rep = collision_surface(m, frac, 0.25)
+        assert dec.n_faces == m.n_faces and rep["attempts"] == 0
+
+
+def test_unreferenced_vertices_do_not_count_as_error():
+    m = tube(wobble=0.05)
+    far = Mesh(np.concatenate([m.vertices, [[1.0, 1.0, 1.0]]]), m.faces)   # a stray vertex 1 m away
+    dec, rep = collision_surface(far, 0.5, 0.25)
+    assert rep["error_max_mm"] <= 0.25 and dec.n_faces < far.n_faces
+
+
+def test_deterministic():
+    m = tube(wobble=0.05)
+    a, _ = collision_surface(m, 0.5, 0.25)
+    b, _ = collision_surface(m, 0.5, 0.25)
+    assert a.vertices.tobytes() == b.vertices.tobytes() and a.faces.tobytes() == b.faces.tobytes()
+
+
+@pytest.mark.parametrize("key,value", [("collision_decimation", 0.0), ("collision_decimation", 1.5),
+                                       ("collision_max_error_mm", 0.0)])
+def test_params_rejected(key, value):
+    with pytest.raises(ConfigError, match=key):
+        MeshParams(**{key: value})
