@@ -166,6 +166,17 @@ def token_factory(log):
     return {"token": token}
 
 
+def thread_budget(state, x):
+    """(executor's thread budget, BLAS / OpenMP pool sizes, OpenImageIO's EXR threads) seen in the worker."""
+    import OpenImageIO as oiio
+    from threadpoolctl import threadpool_info
+
+    from room_pipeline.execution import worker_threads
+
+    return (worker_threads(), sorted({p["num_threads"] for p in threadpool_info()}),
+            oiio.get_int_attribute("exr_threads"))
+
+
 def fail_on_three(state, x):
     if x == 3:
         raise InputError(f"item {x}: bad pose")
@@ -273,6 +284,20 @@ def test_dead_worker_is_a_room_error_and_the_executor_recovers():
         with pytest.raises(RoomError, match=r"^t: a worker process of the local executor died"):
             ex.map(die_on_two, range(6), desc="t")
         assert ex.map(die_on_two, [0, 1, 3]) == [0, 1, 3]          # a new pool
+
+
+def test_workers_limit_library_threads():
+    """Each local worker limits BLAS/OpenMP and OpenImageIO to threads_per_worker; serial leaves them alone."""
+    assert ExecutionParams(workers=2, threads_per_worker=3).threads == 3
+    assert ExecutionParams(workers=64).threads == 1
+    assert ExecutionParams(workers=1).threads == max(1, os.cpu_count() or 1)
+    with pytest.raises(ConfigError, match="threads_per_worker"):
+        ExecutionParams(threads_per_worker=-1)
+    with make_executor(ExecutionParams(backend="local", workers=2, threads_per_worker=1)) as ex:
+        seen = ex.map(thread_budget, range(4))
+    assert all(t == 1 and pools == [1] and exr == 1 for t, pools, exr in seen), seen
+    with make_executor(ExecutionParams(backend="serial")) as ex:
+        assert ex.map(thread_budget, [0])[0][0] is None
 
 
 def test_local_rejects_what_cannot_reach_a_process():

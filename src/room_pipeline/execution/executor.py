@@ -22,6 +22,14 @@ Backends
     running cluster (``"auto"``: ``RAY_ADDRESS`` or the node started here by
     ``ray start``; ``"host:6379"``; ``"ray://host:10001"``).
 
+Threads
+    Each local or Ray worker limits the thread pools of the libraries it
+    loads (BLAS / OpenMP through threadpoolctl, OpenImageIO's EXR codec,
+    OpenCV) to ``threads_per_worker`` (0: cores // workers), so workers do not
+    compete for the cores each other uses; the work function can read the
+    number from :func:`worker_threads` (the render stage gives it to Open3D and
+    Cycles).  The serial backend leaves this process's threads alone.
+
 Items are dispatched in contiguous chunks (``chunk_size``; 0 = about four
 chunks per worker), so a worker rendering frames in order keeps its cache of
 the previous cast.
@@ -63,19 +71,31 @@ class ExecutionParams:
 
     backend: 'serial' | 'local' | 'ray'; workers: processes or Ray actors
     (>= 1); ray_address: None for a private local Ray head, else the address
-    of a running cluster; chunk_size: items per dispatched chunk (0 = automatic).
+    of a running cluster; chunk_size: items per dispatched chunk (0 = automatic);
+    threads_per_worker: library threads per worker (0 = cores // workers, at least 1).
     """
 
     backend: str = "local"
     workers: int = 1
     ray_address: str | None = None
     chunk_size: int = 0
+    threads_per_worker: int = 0
+
+    @property
+    def threads(self) -> int:
+        """Threads each worker's libraries may use (``threads_per_worker``, or cores // workers)."""
+        if self.threads_per_worker > 0:
+            return self.threads_per_worker
+        return max(1, (os.cpu_count() or 1) // self.workers)
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
             raise ConfigError(f"execution.backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
         if self.workers < 1:
             raise ConfigError(f"execution.workers must be >= 1, got {self.workers}")
+        if self.threads_per_worker < 0:
+            raise ConfigError(f"execution.threads_per_worker must be >= 0 (0 = automatic), got "
+                              f"{self.threads_per_worker}")
         if self.chunk_size < 0:
             raise ConfigError(f"execution.chunk_size must be >= 0 (0 = automatic), got {self.chunk_size}")
         if self.ray_address is not None and (not isinstance(self.ray_address, str) or not self.ray_address):
@@ -120,6 +140,7 @@ class _Base:
     def __init__(self, params: ExecutionParams, init: Init | None) -> None:
         self.params = params
         self.workers = params.workers
+        self.threads = params.threads
         self.init = init
 
     def __enter__(self):
@@ -146,6 +167,47 @@ def _build_state(init: Init | None) -> Any:
         return None
     factory, args = init
     return factory(*args)
+
+
+_THREADS: int | None = None
+_LIMITER: Any = None
+
+
+def worker_threads() -> int | None:
+    """The thread budget of this worker process (None outside a local / Ray worker)."""
+    return _THREADS
+
+
+def limit_threads(n: int) -> None:
+    """Limit the thread pools of the libraries loaded in this process to ``n`` (see the module docstring).
+
+    Called in each worker before and after its state is built, so libraries loaded by the factory are
+    limited too; environment variables cover libraries loaded later.
+    """
+    global _THREADS, _LIMITER
+    _THREADS = int(n)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+        os.environ[var] = str(n)
+    os.environ["OPENIMAGEIO_OPTIONS"] = f"threads={n},exr_threads={n}"
+    try:
+        from threadpoolctl import threadpool_limits
+
+        _LIMITER = threadpool_limits(limits=n)        # kept: the limit holds while the worker lives
+    except ImportError:                                # pragma: no cover - a dependency of the package
+        pass
+    if "OpenImageIO" in sys.modules:
+        oiio = sys.modules["OpenImageIO"]
+        oiio.attribute("threads", n)
+        oiio.attribute("exr_threads", n)
+    if "cv2" in sys.modules:
+        sys.modules["cv2"].setNumThreads(n)
+
+
+def _worker_state(init: Init | None, threads: int) -> Any:
+    limit_threads(threads)
+    state = _build_state(init)
+    limit_threads(threads)
+    return state
 
 
 # --------------------------------------------------------------------------- serial
@@ -185,11 +247,11 @@ _WORKER_STATE: Any = None
 _WORKER_ERROR: BaseException | None = None
 
 
-def _local_init(init: Init | None) -> None:
+def _local_init(init: Init | None, threads: int) -> None:
     """Process-pool initializer: build this process's state once (errors are kept and raised per chunk)."""
     global _WORKER_STATE, _WORKER_ERROR
     try:
-        _WORKER_STATE = _build_state(init)
+        _WORKER_STATE = _worker_state(init, threads)
     except BaseException as exc:  # noqa: BLE001 - re-raised in the parent as the original exception
         _WORKER_ERROR = exc
 
@@ -219,7 +281,7 @@ class LocalExecutor(_Base):
                     from None
             self._pool = cf.ProcessPoolExecutor(max_workers=self.workers,
                                                 mp_context=multiprocessing.get_context("spawn"),
-                                                initializer=_local_init, initargs=(self.init,))
+                                                initializer=_local_init, initargs=(self.init, self.threads))
         return self._pool
 
     def map(self, fn, items, *, desc: str = "") -> list:
@@ -271,10 +333,10 @@ class LocalExecutor(_Base):
 class _RayWorker:
     """The body of one Ray actor: the state built once, then chunks of items."""
 
-    def __init__(self, init: Init | None) -> None:
+    def __init__(self, init: Init | None, threads: int) -> None:
         self.error: BaseException | None = None
         try:
-            self.state = _build_state(init)
+            self.state = _worker_state(init, threads)
         except BaseException as exc:  # noqa: BLE001 - raised with the first chunk, as the original type
             self.state, self.error = None, exc
 
@@ -331,7 +393,7 @@ class RayExecutor(_Base):
             self._owns_ray = True
         if not self._actors:
             cls = ray.remote(num_cpus=1)(_RayWorker)
-            self._actors = [cls.remote(self.init) for _ in range(self.workers)]
+            self._actors = [cls.remote(self.init, self.threads) for _ in range(self.workers)]
         return self._actors
 
     def _raise_from(self, exc: BaseException, desc: str) -> None:

@@ -322,8 +322,9 @@ def run(cfg: DictConfig, key: str) -> dict:
                       film=Film(exposure_ev=p.exposure_ev, auto_target=p.auto_exposure_target), face_labels=labels)
         renderer_meta, ev, cycles_ev = _exposure_once(scene, p)
         scene.film = dataclasses.replace(scene.film, exposure_ev=ev)      # every worker: the same fixed EV
-        nthreads = 1 if parallel else 0                                   # Open3D: one thread per worker
-        cycles_threads = max(1, (os.cpu_count() or 1) // ex_params.workers) if parallel else 0
+        # each worker's Open3D casts and Cycles get the executor's per-worker thread budget (0: all cores)
+        nthreads = ex_params.threads if parallel else 0
+        cycles_threads = ex_params.threads if parallel else 0
         init = (_frame_worker, (scene, p, str(seq), src, ts, poses, nthreads, cycles_ev, cycles_threads))
         with make_executor(ex_params, init=init) as ex:
             results = ex.map(_render_frame, range(len(src)), desc=f"render {key}")
