@@ -20,6 +20,9 @@ P = "${output_dir}/${key}"
 MATRIX = "matrix"
 #: once for the whole dataset (`room stage NAME --patient all`)
 DATASET = "dataset"
+#: once for the depth CNN's training patient (``${key}`` below stands for it)
+TRAINING = "training"
+T = "${depth.cnn.checkpoint_patient}"
 Q = "${output_dir}/${item.patient}"
 S = "${item.sequence}"
 E = "${output_dir}/evaluation/${item.patient}/${item.sequence}"
@@ -36,7 +39,8 @@ STAGES = {
     "sdf": ("${patients}", [f"{P}/anatomy/airway_mask.nii.gz"], ["sdf"],
             [f"{P}/anatomy/sdf.nii.gz", f"{P}/anatomy/sdf_metadata.json"], f"{P}/metrics/sdf.json"),
     "mesh": ("${patients}", [f"{P}/anatomy/sdf.nii.gz"], ["mesh"],
-             [f"{P}/anatomy/lung_model.obj", f"{P}/anatomy/mesh_metadata.json", f"{P}/anatomy/volume_mesh"],
+             [f"{P}/anatomy/lung_model.obj", f"{P}/anatomy/collision_model.obj", f"{P}/anatomy/mesh_metadata.json",
+              f"{P}/anatomy/volume_mesh"],
              f"{P}/metrics/mesh.json"),
     "validate_anatomy": ("${phantoms}", [f"{P}/ground_truth", f"{P}/anatomy/airway_mask.nii.gz",
                                          f"{P}/anatomy/sdf.nii.gz", f"{P}/anatomy/lung_model.obj"],
@@ -50,7 +54,8 @@ STAGES = {
                    ["trajectory", "sequences"],
                    [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/{S}/metadata/timestamps.json",
                     f"{Q}/{S}/metadata/trajectory_tum.txt"], f"{Q}/metrics/trajectory_{S}.json"),
-    "simulate": (MATRIX, [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/anatomy/lung_model.obj",
+    "simulate": (MATRIX, [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/anatomy/collision_model.obj",
+                          f"{Q}/anatomy/mesh_metadata.json",
                           f"{Q}/anatomy/centreline_graph.json"], ["simulate"],
                  [f"{Q}/{S}/metadata/robot_config.json", f"{Q}/{S}/metadata/simulation.json",
                   f"{Q}/{S}/metadata/simulated_tum.txt"], f"{Q}/metrics/simulate_{S}.json"),
@@ -66,9 +71,9 @@ STAGES = {
     "evaluate_pose": (MATRIX, [f"{Q}/{S}/rgb", f"{Q}/{S}/rgb_noisy", f"{Q}/{S}/calibration",
                                f"{Q}/{S}/metadata/render.json"], ["evaluate.pose"],
                       [f"{E}/pose.json", f"{E}/pose_errors.csv"], f"{Q}/metrics/evaluate_pose_{S}.json"),
-    # trains on every configured sequence of the phantom patient (the list is expanded from params.yaml's
+    # once, for depth.cnn.checkpoint_patient; trains on every configured sequence of it (the list is expanded from params.yaml's
     # `sequences` when this file is generated: rerun this script after changing it; `sequences` is a param)
-    "train_depth": ("${phantoms}", [f"{P}/{s}/{d}" for s in SEQUENCES
+    "train_depth": (TRAINING, [f"{P}/{s}/{d}" for s in SEQUENCES
                                     for d in ("${depth.input}", "depth", "calibration", "metadata/render.json")],
                     ["depth.train", "depth.cnn", "depth.valid_range_mm", "depth.input", "sequences"],
                     [f"{P}/depth_model", "${output_dir}/evaluation/${key}/depth_finetune.json"],
@@ -78,7 +83,8 @@ STAGES = {
                        + ["${output_dir}/${depth.cnn.checkpoint_patient}/depth_model"], ["depth"],
                        [f"{E}/depth.json", f"{E}/depth_errors.csv"], f"{Q}/metrics/evaluate_depth_{S}.json"),
     # once over the dataset: every evaluation result lives under ${output_dir}/evaluation
-    "tables": (DATASET, ["${output_dir}/evaluation"], ["evaluate.tables", "evaluate.pose.methods"],
+    "tables": (DATASET, ["${output_dir}/evaluation"], ["evaluate.tables", "evaluate.pose.methods", "depth.cnn.checkpoint_patient",
+                                                  "depth.train.eval_patients"],
                [f"reports/{t}.{x}" for t in ("table_1_pose", "table_2_depth", "table_3_finetune")
                 for x in ("md", "tex", "csv")] + ["reports/pose_speed_accuracy.csv"], "reports/metrics.json"),
 }
@@ -97,6 +103,11 @@ def render() -> str:
         if foreach == DATASET:
             ind = "    "
             lines += [f"  {name}:", f"{ind}cmd: room stage {name} --patient all --params params.yaml --quiet"]
+        elif foreach == TRAINING:
+            ind = "    "
+            lines += [f"  {name}:", f"{ind}cmd: room stage {name} --patient {T} --params params.yaml --quiet"]
+            extra, outs, metrics = ([x.replace("${key}", T) for x in extra], [x.replace("${key}", T) for x in outs],
+                                    metrics.replace("${key}", T))
         elif foreach == MATRIX:
             ind = "    "
             lines += [f"  {name}:", "    matrix:", "      patient: ${patients}", "      sequence: ${sequences}",

@@ -441,11 +441,10 @@ def test_train_depth_stage_contract_and_evaluate_uses_it(tmp_path):
     ev = json.loads((tmp_path / "out" / "evaluation" / "patient_000" / "depth_finetune.json").read_text())
     assert ev["datasets"] == doc["datasets"] and "times_s" not in json.dumps(ev)
     ds = doc["datasets"]
-    assert set(ds) == {"phantom_held_out", "other_anatomy", "simcol"}
+    assert set(ds) == {"phantom_held_out", "simcol"}      # other_anatomy: evaluate_depth + tables
     held = ds["phantom_held_out"]
     assert held["available"] and held["n_frames"] == 1 and set(held["before"]) >= set(dm.METRIC_KEYS)
     assert held["after"]["scaling"] == "median"
-    assert not ds["other_anatomy"]["available"] and "no other patient" in ds["other_anatomy"]["reason"]
     assert not ds["simcol"]["available"] and ds["simcol"]["before"] is None
     tr = doc["training"]
     assert tr["finetune"]["frames"] == 3 and tr["pretrain"]["frames"] == 2 and tr["seed"] == 3
@@ -459,20 +458,12 @@ def test_train_depth_stage_contract_and_evaluate_uses_it(tmp_path):
     assert math.isfinite(rows["cnn"]["AbsRel"])
 
 
-def test_train_depth_other_anatomy_and_without_torch(tmp_path, monkeypatch):
+def test_train_depth_without_torch(tmp_path, monkeypatch):
     pytest.importorskip("torch")
     from room_pipeline.stages import train_depth
 
-    for p in ("patient_000", "medmask"):
-        write_sequence(tmp_path / "out" / p / "sequence_000", n=3, size=32)
+    write_sequence(tmp_path / "out" / "patient_000" / "sequence_000", n=3, size=32)
     cfg = depth_cfg(tmp_path, **TINY)
-    cfg.patients["medmask"] = {"kind": "mask", "input": "m.nii.gz"}
-    cfg.patients["patient_009"] = {"kind": "ct", "input": "c.nii.gz"}
-    assert train_depth.eval_patients(cfg, "patient_000", None) == [("medmask", "real airway mask (shared data)")]
-    train_depth.run(cfg, "patient_000")
-    doc = json.loads((tmp_path / "out" / "patient_000" / "metrics" / "train_depth.json").read_text())
-    other = doc["datasets"]["other_anatomy"]
-    assert other["available"] and other["n_frames"] == 3 and other["groups"] == ["medmask/sequence_000"]
 
     def no_torch():
         raise BackendUnavailable("torch is not installed (test)")

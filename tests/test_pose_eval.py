@@ -470,7 +470,7 @@ def test_tables_from_hand_made_files(tmp_path):
     assert d2["depth_anything"]["L1 (mm)"] == "1.50" and d2["depth_anything"]["delta1 (%)"] == "90.00"
     assert d2["zoedepth"]["Status"] == "unavailable: no weights"
     t3 = list(csv.reader(io.StringIO((rep / "table_3_finetune.csv").read_text())))
-    after = dict(zip(t3[0], t3[2]))
+    after = next(dict(zip(t3[0], r)) for r in t3[1:] if r[0] == "room" and r[1] == "after fine-tuning")
     assert after["Model"] == "after fine-tuning" and after["L1 (mm)"] == "0.50" and after["Patients"] == "1"
     sa = list(csv.DictReader(io.StringIO((rep / "pose_speed_accuracy.csv").read_text())))
     assert [r["method"] for r in sa] == ["colmap", "orb_vo"] and float(sa[0]["RRA_5_pct"]) == 75.0
@@ -520,3 +520,42 @@ def test_finetune_table_reads_train_depth_record(tmp_path):
     assert rows[("phantom_held_out", "after fine-tuning")]["AbsRel"] == "0.10"
     assert rows[("simcol", "before fine-tuning")]["Status"] == "unavailable: depth.train.simcol_dir is not set"
     assert rows[("simcol", "after fine-tuning")]["L1 (mm)"] == "-"
+
+
+def test_table_3_other_anatomy_from_evaluate_depth(tmp_path):
+    """other_anatomy = evaluate_depth's cnn_pretrained (before) / cnn (after) on the non-training patients."""
+    from room_pipeline.stages import tables
+
+    cfg = make_cfg(tmp_path)
+    cfg.patients["p1"] = {"kind": "ct", "input": "y"}
+    cfg.patients["m1"] = {"kind": "mask", "input": "z"}
+    cfg.phantoms = {"p0": {"seed": 0}, "p1": {"seed": 1}}
+    cfg.depth = {"cnn": {"checkpoint_patient": "p0"}, "train": {"eval_patients": None}}
+    assert tables.eval_patients(cfg, "p0", None) == [("m1", "real airway mask (shared data)")]
+    assert tables.eval_patients(cfg, "p0", ["p1", "p0"]) == [("p1", "phantom seed 1")]
+    m = {"L1_mm": 2.0, "AbsRel": 0.2, "RMSE_mm": 3.0, "delta1": 0.5, "n_frames": 4}
+    write_json(tmp_path / "out" / "evaluation" / "p0" / "depth_finetune.json", {"datasets": {
+        "phantom_held_out": {"available": True, "reason": None, "before": m, "after": m}}})
+    for seq, absrel in (("sequence_000", 0.3), ("sequence_001", 0.1)):
+        write_json(tmp_path / "out" / "evaluation" / "p1" / seq / "depth.json", {"methods": {
+            "cnn_pretrained": {**m, "available": True, "AbsRel": absrel},
+            "cnn": {**m, "available": True, "AbsRel": absrel / 2}}, "units": {"delta1": "fraction"}})
+
+    def rows():
+        t3 = parse_markdown((tmp_path / "reports" / "table_3_finetune.md").read_text())
+        return {(r[0], r[1]): dict(zip(t3[0], r)) for r in t3[1:]}
+
+    tables.run(cfg, "all")                 # eval_patients null: the mask patient, which has no records
+    r = rows()[("other_anatomy", "after fine-tuning")]
+    assert r["Patients"] == "0" and "m1: no evaluate_depth record" in r["Status"]
+    cfg.depth.train.eval_patients = ["p1"]
+    counts = tables.run(cfg, "all")
+    assert counts["depth_finetune_json"] == 1
+    r = rows()
+    assert r[("other_anatomy", "before fine-tuning")]["AbsRel"] == "0.20"       # mean of 0.3 and 0.1
+    assert r[("other_anatomy", "after fine-tuning")]["AbsRel"] == "0.10"
+    assert r[("other_anatomy", "after fine-tuning")]["Patients"] == "1"
+    cfg.patients = {"p0": cfg.patients["p0"]}
+    cfg.depth.train.eval_patients = None
+    tables.run(cfg, "all")
+    assert "no other patient configured" in rows()[("other_anatomy", "before fine-tuning")]["Status"]

@@ -64,6 +64,9 @@ def test_dvc_stage_outs_match_stage_module(name):
         body, keys = st, [(p, s) for p in cfg.patients for s in cfg.sequences]
     elif fan == "dataset":
         body, keys = st, [("all", None)]
+    elif fan == "training":
+        body, keys = st, [(cfg.depth.cnn.checkpoint_patient, None)]
+        assert st["cmd"].startswith(f"room stage {name} --patient ${{depth.cnn.checkpoint_patient}}")
     else:
         assert st["foreach"] == "${%s}" % fan
         body, keys = st["do"], [(k, None) for k in (cfg.phantoms if fan == "phantoms" else cfg.patients)]
@@ -71,6 +74,7 @@ def test_dvc_stage_outs_match_stage_module(name):
     for patient, seq in keys:
         def render(s: str) -> str:
             s = s.replace("${output_dir}", cfg.output_dir).replace("${key}", patient)
+            s = s.replace("${depth.cnn.checkpoint_patient}", cfg.depth.cnn.checkpoint_patient)
             return s.replace("${item.patient}", patient).replace("${item.sequence}", seq or "")
         outs = {render(next(iter(o)) if isinstance(o, dict) else o)
                 for o in body.get("outs", []) + body.get("plots", [])}

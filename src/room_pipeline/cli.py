@@ -80,7 +80,9 @@ def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> i
     patient = patient or cfg.get("patient") or patients[0]
     patient_entry(cfg, patient)  # validates
     is_phantom = patient in (cfg.get("phantoms") or {})
-    order = [s for s in stages.STAGES if is_phantom or stages.FAN_OUT[s] != "phantoms"]
+    trains = patient == str(OmegaConf.select(cfg, "depth.cnn.checkpoint_patient", default=""))
+    order = [s for s in stages.STAGES if (is_phantom or stages.FAN_OUT[s] != "phantoms")
+             and (trains or stages.FAN_OUT[s] != "training")]
     if until:
         if until not in order:
             raise RoomError(f"--until {until}: not a stage of this run ({', '.join(order)})")

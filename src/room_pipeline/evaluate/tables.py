@@ -246,7 +246,9 @@ def finetune_table(docs: Sequence[Mapping[str, Any]], digits: int = 2,
     if not rows:
         rows.append(["(none)", DASH] + [DASH] * len(FINETUNE_COLUMNS) + ["0"] + [paper.NOT_RETRIEVED] * len(pcols)
                     + [f"not run: {missing}"])
-    notes = [f"Mean over the patients with a fine-tuning record ({len(docs)} found); units as in Table II.",
+    notes = ["Each row: mean over the patients in its Patients column (phantom_held_out, simcol: the training "
+             "patient's train_depth record; other_anatomy: evaluate_depth of its two checkpoints on each other "
+             "patient, rows cnn_pretrained and cnn); all median-scaled per sequence; units as in Table II.",
              paper.NOTE]
     return Table(name, "Table III: monocular depth before and after fine-tuning on ROOM data", header, rows, notes,
                  numbers, text_columns=2)

@@ -12,12 +12,12 @@ from types import ModuleType
 STAGES = ("phantom", "segment", "sdf", "mesh", "validate_anatomy", "medial_axis", "validate_centreline",
           "trajectory", "simulate", "render", "noise", "train_depth", "evaluate_depth", "evaluate_pose", "tables")
 
-#: how each stage fans out: over phantom patients, all patients, patients x sequences, or once for the
-#: whole dataset (key "all")
+#: how each stage fans out: over phantom patients, all patients, patients x sequences, once for the
+#: whole dataset (key "all"), or once for the depth CNN's training patient (``depth.cnn.checkpoint_patient``)
 FAN_OUT = {"phantom": "phantoms", "segment": "patients", "sdf": "patients", "mesh": "patients",
            "validate_anatomy": "phantoms", "medial_axis": "patients", "validate_centreline": "phantoms",
            "trajectory": "sequences", "simulate": "sequences", "render": "sequences", "noise": "sequences",
-           "train_depth": "phantoms", "evaluate_depth": "sequences", "evaluate_pose": "sequences",
+           "train_depth": "training", "evaluate_depth": "sequences", "evaluate_pose": "sequences",
            "tables": "dataset"}
 
 

@@ -7,6 +7,13 @@ configured patient id, to tabulate only that patient).  Reads, where present,
 ``<output_dir>/evaluation/<patient>/depth_finetune.json`` (the depth stages);
 a missing file gives a "not run" row, never an error.
 
+Table III's ``other_anatomy`` rows come from the `evaluate_depth` records of
+the patients other than ``depth.cnn.checkpoint_patient`` (or those of
+``depth.train.eval_patients``): ``cnn_pretrained`` is "before", ``cnn`` (the
+checkpoint fine-tuned on the training patient) is "after", both median-scaled
+per sequence like the other Table III sets; mean over each patient's
+sequences, then over patients.
+
 Writes into ``evaluate.tables.output_dir`` (default ``reports/``):
 ``table_1_pose.{md,tex,csv}``, ``table_2_depth.{md,tex,csv}``,
 ``table_3_finetune.{md,tex,csv}``, ``pose_speed_accuracy.csv`` (time per frame
@@ -25,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from ..config.params import params_from_dict
 from ..errors import ConfigError, InputError
 from ..evaluate import paper
-from ..evaluate.tables import depth_table, finetune_table, pose_table, speed_accuracy_csv
+from ..evaluate.tables import FINETUNE_COLUMNS, depth_table, finetune_table, mean_records, pose_table, speed_accuracy_csv
 from ..io.atomic import write_json, write_text
 from ..paths import PatientPaths
 from .common import _finite, round_floats
@@ -81,8 +88,64 @@ def _read(path: Path) -> Any:
         raise InputError(f"{path}: not readable JSON ({exc})") from None
 
 
-def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]) -> tuple[list[dict], list[dict]]:
-    """The depth stages' records: (per-sequence ``evaluation/depth.json`` docs, per-patient ``depth_finetune.json``).
+def eval_patients(cfg: DictConfig, patient: str, chosen) -> list[tuple[str, str]]:
+    """[(patient, description)] of the other-anatomy set: ``chosen`` (``depth.train.eval_patients``) or, when
+    null, the configured patients built from real airway masks, else every other configured patient."""
+    patients = dict(cfg.get("patients") or {})
+    phantoms = dict(cfg.get("phantoms") or {})
+
+    def describe(q: str) -> str:
+        if q in phantoms:
+            return f"phantom seed {phantoms[q].get('seed', 0)}"
+        kind = (patients.get(q) or {}).get("kind", "?")
+        return "real airway mask (shared data)" if kind == "mask" else f"patient of kind {kind}"
+
+    if chosen is not None:
+        return [(str(q), describe(str(q))) for q in chosen if str(q) != patient]
+    others = [q for q in patients if q != patient]
+    masks = [q for q in others if (patients.get(q) or {}).get("kind") == "mask"]
+    return [(q, describe(q)) for q in (masks or others)]
+
+
+def other_anatomy_records(cfg: DictConfig, depth_by_patient: Mapping[str, list[dict]]) -> list[dict]:
+    """Fine-tuning records (``{"datasets": {"other_anatomy": ...}}``, one per other patient) built from the
+    `evaluate_depth` docs of the patients other than the training patient (module docstring)."""
+    dep = cfg.get("depth") or {}
+    train_patient = str((dep.get("cnn") or {}).get("checkpoint_patient", "patient_000"))
+    chosen = (dep.get("train") or {}).get("eval_patients")
+    others = eval_patients(cfg, train_patient, None if chosen is None else list(chosen))
+    keys = [k for k, _, _ in FINETUNE_COLUMNS]
+    if not others:
+        return [{"datasets": {"other_anatomy": {
+            "available": False, "source": "none", "before": None, "after": None,
+            "reason": f"no other patient configured besides the training patient {train_patient} (add a second "
+                      "phantom seed or patients built from real airway masks)"}}}]
+    out, missing = [], []
+    for q, desc in others:
+        docs = depth_by_patient.get(q) or []
+        phases = {}
+        for phase, method in (("before", "cnn_pretrained"), ("after", "cnn")):
+            recs = [(d.get("methods") or {}).get(method) or {} for d in docs]
+            recs = [r for r in recs if r.get("available")]
+            if recs:
+                phases[phase] = {**mean_records(recs, keys), "n_frames": sum(int(r.get("n_frames") or 0) for r in recs),
+                                 "sequences": len(recs)}
+        if len(phases) == 2:
+            out.append({"datasets": {"other_anatomy": {
+                "available": True, "reason": None, "source": f"{q} ({desc}): evaluate_depth rows cnn_pretrained "
+                                                           "(before) and cnn (after)", **phases}}})
+        else:
+            missing.append(f"{q}: no evaluate_depth record with cnn and cnn_pretrained")
+    if not out:
+        return [{"datasets": {"other_anatomy": {"available": False, "source": ", ".join(q for q, _ in others),
+                                                "before": None, "after": None, "reason": "; ".join(missing)}}}]
+    return out
+
+
+def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
+                     ) -> tuple[dict[str, list[dict]], list[dict]]:
+    """The depth stages' records: ({patient: its per-sequence ``evaluation/depth.json`` docs}, per-patient
+    ``depth_finetune.json`` docs).
 
     The one place that knows the other stages' file layout and format (adjust here if it changes):
     ``depth.json`` = {"methods": {name: {"available", "reason", "L1_mm", "AbsRel", "RMSE_mm", "delta1", ...,
@@ -92,7 +155,8 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
     ``<output_dir>/evaluation/<patient>/depth_finetune.json`` (written by `train_depth`, with per-dataset
     ``available`` / ``reason``).
     """
-    depth, finetune = [], []
+    depth: dict[str, list[dict]] = {}
+    finetune = []
     for pat in patients:
         paths = PatientPaths(output_dir, pat)
         for seq in sequences:
@@ -104,7 +168,7 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
                         for k in ("delta1", "delta2", "delta3"):
                             if isinstance(rec.get(k), (int, float)):
                                 rec[k] = rec[k] / 100.0
-                depth.append(doc)
+                depth.setdefault(pat, []).append(doc)
         f = paths.evaluation_root / "depth_finetune.json"      # written by train_depth
         if f.is_file():
             finetune.append(_read(f))
@@ -149,10 +213,14 @@ def run(cfg: DictConfig, key: str) -> dict:
     patients, sequences = _targets(cfg, key)
     output_dir = Path(cfg.output_dir)
     pose_docs = read_pose_files(output_dir, patients, sequences)
-    depth_docs, finetune_docs = read_depth_files(output_dir, patients, sequences)
+    depth_by_patient, finetune_docs = read_depth_files(output_dir, patients, sequences)
+    depth_docs = [d for pat in patients for d in depth_by_patient.get(pat, [])]
+    n_finetune = len(finetune_docs)
+    if finetune_docs:       # the fine-tuning ran: add its other-anatomy evaluation (module docstring)
+        finetune_docs = finetune_docs + other_anatomy_records(cfg, depth_by_patient)
     order = tuple((ev.get("pose") or {}).get("methods") or ())
     tables = build_tables(pose_docs, depth_docs, finetune_docs, p.digits, order)
     counts = {"patients": len(patients), "sequences": len(patients) * len(sequences),
-              "pose_json": len(pose_docs), "depth_json": len(depth_docs), "depth_finetune_json": len(finetune_docs)}
+              "pose_json": len(pose_docs), "depth_json": len(depth_docs), "depth_finetune_json": n_finetune}
     write_reports(Path(p.output_dir), tables, counts)
     return counts

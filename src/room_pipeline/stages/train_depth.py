@@ -1,16 +1,19 @@
-"""Stage `train_depth`: the fine-tuning experiment of the paper's Table III, for one (phantom) training patient.
+"""Stage `train_depth`: the fine-tuning experiment of the paper's Table III, run once for the training patient.
 
+The training patient is ``depth.cnn.checkpoint_patient`` (a phantom patient).
 Pretrains the small U-Net of :mod:`room_pipeline.depth.cnn` on generic
-synthetic tube scenes ("before"), fine-tunes it on the training patient's
-rendered sequences minus a held-out tail of each ("after"), and evaluates
-both, median-scaled per sequence, on
+synthetic tube scenes ("before"), fine-tunes it on that patient's rendered
+sequences minus a held-out tail of each ("after"), and evaluates both,
+median-scaled per sequence, on
 
 ``phantom_held_out``  the held-out tails (same anatomy, frames never trained on);
-``other_anatomy``     the sequences of ``depth.train.eval_patients`` (null: the configured
-                      patients built from real airway masks, else the other patients -- other
-                      phantom seeds); unavailable with the reason when there is none or they
-                      are not rendered;
 ``simcol``            the SimCol RGB-D pairs of ``depth.train.simcol_dir`` (external set).
+
+The third set of Table III, ``other_anatomy`` (the other configured patients:
+real airway masks or other phantom seeds), is measured by `evaluate_depth` on
+those patients' sequences with these two checkpoints (rows ``cnn_pretrained``
+and ``cnn``) and gathered by `tables`: DVC then orders every read correctly,
+whatever patients a configuration lists.
 
 Writes ``<output_dir>/evaluation/<patient>/depth_finetune.json`` (read by `tables`) and
 ``<patient>/depth_model/{pretrained.pt, finetuned.pt, training.json,
@@ -66,24 +69,6 @@ def split_indices(n: int, holdout_fraction: float, gap: int, train_stride: int, 
     return train, held
 
 
-def eval_patients(cfg: DictConfig, patient: str, chosen) -> list[tuple[str, str]]:
-    """[(patient, description)] of the other-anatomy set (see the module docstring)."""
-    patients = dict(cfg.get("patients") or {})
-    phantoms = dict(cfg.get("phantoms") or {})
-
-    def describe(q: str) -> str:
-        if q in phantoms:
-            return f"phantom seed {phantoms[q].get('seed', 0)}"
-        kind = (patients.get(q) or {}).get("kind", "?")
-        return "real airway mask (shared data)" if kind == "mask" else f"patient of kind {kind}"
-
-    if chosen is not None:
-        return [(str(q), describe(str(q))) for q in chosen if str(q) != patient]
-    others = [q for q in patients if q != patient]
-    masks = [q for q in others if (patients.get(q) or {}).get("kind") == "mask"]
-    return [(q, describe(q)) for q in (masks or others)]
-
-
 def _datasets(cfg: DictConfig, patient: str, p: DepthParams, held: list) -> dict:
     """name -> {"samples": list | None, "reason": str | None, "source": str}."""
     tp = p.train
@@ -92,25 +77,6 @@ def _datasets(cfg: DictConfig, patient: str, p: DepthParams, held: list) -> dict
         "samples": held or None, "source": f"{patient}: last {tp.holdout_fraction:.0%} of each sequence, "
                                           f"every {tp.eval_stride}th frame",
         "reason": None if held else "no held-out frames (depth.train.holdout_fraction is 0 or sequences too short)"}
-    others = eval_patients(cfg, patient, tp.eval_patients)
-    samples, missing = [], []
-    for q, _ in others:
-        qp = patient_paths(cfg, q)
-        for s in cfg.get("sequences") or []:
-            try:
-                samples += sequence_samples(qp.sequence(s), p.input, stride=tp.eval_stride, group=f"{q}/{s}")
-            except InputError as exc:
-                missing.append(str(exc))
-    src = "; ".join(f"{q} ({d})" for q, d in others) or "none"
-    if not others:
-        reason = (f"no other patient configured besides {patient} (add patients built from the shared real masks, "
-                  "or a second phantom seed, to the config)")
-    elif not samples:
-        reason = "other-anatomy sequences not rendered: " + "; ".join(missing)
-    else:
-        reason = None
-    out["other_anatomy"] = {"samples": samples or None, "reason": reason, "source": src,
-                            "missing": missing or None}
     simcol = Path(tp.simcol_dir) if tp.simcol_dir else None
     if simcol is None:
         out["simcol"] = {"samples": None, "reason": "depth.train.simcol_dir is not set", "source": "SimCol3D"}
