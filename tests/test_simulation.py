@@ -143,6 +143,16 @@ def test_contact_law_one_and_two_newton():
         assert pen == pytest.approx(expected, rel=0.2)
 
 
+def test_wall_margin_is_the_wall_offset():
+    """The airway mesh's Bullet margin inflates the wall: 0 keeps the true surface, Bullet's 1 mm default does not."""
+    pen0, _ = contact_probe(SimParams(), 1e-4)                       # a feather touch: the true surface
+    pen1, _ = contact_probe(SimParams(wall_margin_mm=1.0), 1e-4)
+    assert abs(pen0) < 0.02 * MM
+    assert pen1 == pytest.approx(-1.0 * MM, abs=0.05 * MM)           # rests 1 mm above the mesh
+    with pytest.raises(ConfigError, match="wall_margin_mm"):
+        SimParams(wall_margin_mm=-0.1)
+
+
 # --------------------------------------------------------------------------- contact with a wall
 
 

@@ -46,7 +46,11 @@ Contact
 Airway
     A static concave triangle mesh (``GEOM_MESH`` with ``GEOM_FORCE_CONCAVE_TRIMESH``) of the
     lumen surface; the scope is inside it (triangle contacts are two-sided, so the wall
-    pushes the scope back into the lumen).  With ``crop_mesh`` only the triangles whose
+    pushes the scope back into the lumen).  Its Bullet collision margin is ``wall_margin_mm``
+    (default 0): Bullet's own default (1 mm) inflates every triangle by the margin, i.e. the
+    lumen was 1 mm narrower than the mesh (a capsule rests 1 mm above a triangle floor), and
+    the margin also enlarges every triangle query, doubling the step time deep in a narrow
+    branch (benchmarks/results/simulation.md).  With ``crop_mesh`` only the triangles whose
     centroid is within ``crop_radius_mm`` of the scope are loaded, and the crop is rebuilt
     when any scope point has moved more than ``crop_rebuild_mm`` since the last build.
 
@@ -121,6 +125,7 @@ class SimParams:
     passive_shaft_length_mm: float = 40.0   # passive: free shaft length behind the bending segment
     passive_shaft_links: int = 8
     shaft_bending_stiffness_nm2: float = 2.0e-3  # passive shaft EI, N m^2 (joint k = EI / link length)
+    wall_margin_mm: float = 0.0             # Bullet collision margin of the airway mesh (inflates it; Bullet: 1 mm)
     crop_mesh: bool = False                 # load only the triangles near the scope (no gain measured)
     crop_radius_mm: float = 12.0
     crop_rebuild_mm: float = 3.0
@@ -170,7 +175,7 @@ class SimParams:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"simulate.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
+        for name in ("wall_margin_mm", "inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
                      "delay_max_s", "gain_q1", "gain_q2", "settle_time_s"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"simulate.{name} must be >= 0, got {getattr(self, name)}")
@@ -227,6 +232,7 @@ def robot_config(params: SimParams, geometry: ScopeGeometry) -> dict:
                           if params.insertion_model == "passive" else None),
         "simulator": {"engine": "pybullet", "version": p.getAPIVersion(), "mode": "DIRECT", "time_step": dt,
                       "solver_iterations": params.solver_iterations, "gravity": params.gravity_m_s2,
+                      "wall_collision_margin": params.wall_margin_mm * 1e-3,
                       "mesh_crop": ({"radius": params.crop_radius_mm * 1e-3, "rebuild": params.crop_rebuild_mm * 1e-3}
                                     if params.crop_mesh else None)},
     }
@@ -443,7 +449,8 @@ class ScopeSim:
                                                  indices=np.asarray(faces, np.int64).ravel().tolist(),
                                                  flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
         self.wall = p.createMultiBody(0.0, self.wall_shape, -1, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
-        p.changeDynamics(self.wall, -1, lateralFriction=1.0, restitution=0.0, physicsClientId=c)
+        p.changeDynamics(self.wall, -1, lateralFriction=1.0, restitution=0.0,
+                         collisionMargin=self.params.wall_margin_mm * 1e-3, physicsClientId=c)
 
     def add_box(self, half_extents, position) -> int:
         """A static box (contact-law checks); friction 1.0 so the pair's coefficient is the scope's."""
@@ -589,20 +596,27 @@ class ScopeSim:
 
 
 def contact_probe(params: SimParams, force_n: float, time_s: float = 1.0) -> tuple[float, float]:
-    """Penetration (m) and normal force (N) of one scope link pressed on a static box by ``force_n``.
+    """Penetration (m) and normal force (N) of one scope link pressed on a static wall by ``force_n``.
 
-    The link is a free capsule (diameter ``scope_diameter_mm``, length ``l / n_links``) with the
-    scope's contact settings (soft contact on the link only, box friction 1.0), lying on the box,
-    no gravity; the force acts at its centre for ``time_s``.  The check of the contact law.
+    The wall is a triangle-mesh floor built like the airway (concave trimesh, friction 1.0,
+    collision margin ``wall_margin_mm``); the link is a free capsule (diameter
+    ``scope_diameter_mm``, length ``l / n_links``) with the scope's contact settings (soft
+    contact on the link only), lying on it, no gravity; the force acts at its centre for
+    ``time_s``.  Penetration is measured against the mesh's true plane (z = 0), so a margin
+    that inflates the wall shows up as negative penetration.  The check of the contact law.
     """
     c = p.connect(p.DIRECT)
     try:
         p.setPhysicsEngineParameter(fixedTimeStep=params.time_step_s, numSolverIterations=params.solver_iterations,
                                     numSubSteps=0, deterministicOverlappingPairs=1, physicsClientId=c)
         p.setGravity(0.0, 0.0, 0.0, physicsClientId=c)
-        box = p.createCollisionShape(p.GEOM_BOX, halfExtents=[0.05, 0.05, 0.05], physicsClientId=c)
-        b = p.createMultiBody(0.0, box, -1, [0.0, 0.0, -0.05], [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
-        p.changeDynamics(b, -1, lateralFriction=1.0, restitution=0.0, physicsClientId=c)
+        floor = p.createCollisionShape(p.GEOM_MESH, vertices=[[-0.05, -0.05, 0.0], [0.05, -0.05, 0.0],
+                                                              [0.05, 0.05, 0.0], [-0.05, 0.05, 0.0]],
+                                       indices=[0, 1, 2, 0, 2, 3], flags=p.GEOM_FORCE_CONCAVE_TRIMESH,
+                                       physicsClientId=c)
+        b = p.createMultiBody(0.0, floor, -1, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
+        p.changeDynamics(b, -1, lateralFriction=1.0, restitution=0.0, collisionMargin=params.wall_margin_mm * 1e-3,
+                         physicsClientId=c)
         r = 0.5 * params.scope_diameter_mm * 1e-3
         L = 0.05 / params.n_links
         cap = p.createCollisionShape(p.GEOM_CAPSULE, radius=r, height=L, physicsClientId=c)
