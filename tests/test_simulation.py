@@ -145,12 +145,36 @@ def test_contact_law_one_and_two_newton():
 
 def test_wall_margin_is_the_wall_offset():
     """The airway mesh's Bullet margin inflates the wall: 0 keeps the true surface, Bullet's 1 mm default does not."""
-    pen0, _ = contact_probe(SimParams(), 1e-4)                       # a feather touch: the true surface
-    pen1, _ = contact_probe(SimParams(wall_margin_mm=1.0), 1e-4)
+    light = SimParams(mass_scale=1.0)                                # (the offset is geometry: any mass shows it)
+    pen0, _ = contact_probe(light, 1e-4)                             # a feather touch: the true surface
+    pen1, _ = contact_probe(dataclasses.replace(light, wall_margin_mm=1.0), 1e-4)
     assert abs(pen0) < 0.02 * MM
     assert pen1 == pytest.approx(-1.0 * MM, abs=0.05 * MM)           # rests 1 mm above the mesh
     with pytest.raises(ConfigError, match="wall_margin_mm"):
         SimParams(wall_margin_mm=-0.1)
+
+
+def test_unstable_run_is_redone_at_half_the_step(phantom, monkeypatch):
+    """A run that penetrates too deep is redone at dt/2 (at most max_step_halvings times), and says so."""
+    import room_pipeline.robot.pybullet_sim as ps
+
+    tree, tr, mesh = phantom
+    short = dataclasses.replace(tr, timestamps=tr.timestamps[:6], poses=tr.poses[:6], arclength=tr.arclength[:6])
+    real, steps = ps._simulate, []
+
+    def deep_at_large_steps(*a, **kw):
+        r = real(*a, **kw)
+        steps.append(r.report["time_step_s"])
+        if r.report["time_step_s"] > 0.004:                  # pretend the large steps diverged
+            r.report["penetration_mm"]["max"] = 5.0
+        return r
+
+    monkeypatch.setattr(ps, "_simulate", deep_at_large_steps)
+    res = ps.simulate(short, mesh, SimParams(time_step_s=0.01), G)
+    assert steps == [0.01, 0.005, 0.0025] and res.report["time_step_s"] == 0.0025
+    assert [u["time_step_s"] for u in res.report["unstable_runs"]] == [0.01, 0.005]
+    res = ps.simulate(short, mesh, SimParams(time_step_s=0.01, max_step_halvings=0), G)
+    assert res.report["time_step_s"] == 0.01 and res.report["unstable_runs"] == []      # reported, not retried
 
 
 # --------------------------------------------------------------------------- contact with a wall

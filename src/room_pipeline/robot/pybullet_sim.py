@@ -99,7 +99,9 @@ class SimParams:
     """Knobs of the simulation; field names are the keys of ``conf/simulate/default.yaml``."""
 
     seed: int = 0                           # actuation delay RNG seed
-    time_step_s: float = 5e-3               # physics step (largest stable at n_links 10: benchmarks/simulation.py)
+    time_step_s: float = 1e-2               # physics step (largest stable in contact: benchmarks/simulation.py)
+    unstable_penetration_mm: float = 1.0    # a run deeper than this (or non-finite) is redone at half the step
+    max_step_halvings: int = 2              # ... at most this many times
     solver_iterations: int = 10             # Bullet constraint-solver iterations per step
     n_links: int = 10                       # capsules in the bending segment
     scope_diameter_mm: float = 5.0          # outer diameter (Ambu aScope 4 Regular: 5.0 mm)
@@ -139,7 +141,7 @@ class SimParams:
 
     def __post_init__(self) -> None:
         ints = ("seed", "solver_iterations", "n_links", "passive_shaft_links", "controller_iterations",
-                "mass_matrix_every")
+                "mass_matrix_every", "max_step_halvings")
         for name in ints:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or float(v) != int(v):
@@ -171,11 +173,11 @@ class SimParams:
                     "joint_stiffness", "joint_damping", "contact_stiffness", "passive_shaft_length_mm",
                     "passive_shaft_links", "shaft_bending_stiffness_nm2", "crop_radius_mm", "crop_rebuild_mm",
                     "controller_iterations", "mass_matrix_every", "max_rate_q1_mm_s", "max_rate_q2_deg_s",
-                    "max_rate_q3_mm_s")
+                    "max_rate_q3_mm_s", "unstable_penetration_mm")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"simulate.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("wall_margin_mm", "inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
+        for name in ("max_step_halvings", "wall_margin_mm", "inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
                      "delay_max_s", "gain_q1", "gain_q2", "settle_time_s"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"simulate.{name} must be >= 0, got {getattr(self, name)}")
@@ -231,6 +233,9 @@ def robot_config(params: SimParams, geometry: ScopeGeometry) -> dict:
                            "bending_stiffness": params.shaft_bending_stiffness_nm2}
                           if params.insertion_model == "passive" else None),
         "simulator": {"engine": "pybullet", "version": p.getAPIVersion(), "mode": "DIRECT", "time_step": dt,
+                      "instability": f"penetration > {params.unstable_penetration_mm} mm or non-finite: rerun at half "
+                                     f"the step, at most {params.max_step_halvings} times (simulation.json: "
+                                     "report.time_step_s, report.unstable_runs)",
                       "solver_iterations": params.solver_iterations, "gravity": params.gravity_m_s2,
                       "wall_collision_margin": params.wall_margin_mm * 1e-3,
                       "mesh_crop": ({"radius": params.crop_radius_mm * 1e-3, "rebuild": params.crop_rebuild_mm * 1e-3}
@@ -603,7 +608,8 @@ def contact_probe(params: SimParams, force_n: float, time_s: float = 1.0) -> tup
     ``scope_diameter_mm``, length ``l / n_links``) with the scope's contact settings (soft
     contact on the link only), lying on it, no gravity; the force acts at its centre for
     ``time_s``.  Penetration is measured against the mesh's true plane (z = 0), so a margin
-    that inflates the wall shows up as negative penetration.  The check of the contact law.
+    that inflates the wall shows up as negative penetration.  The link's mass is the simulated
+    one (physical x ``mass_scale``), as in the scope.  The check of the contact law.
     """
     c = p.connect(p.DIRECT)
     try:
@@ -620,7 +626,7 @@ def contact_probe(params: SimParams, force_n: float, time_s: float = 1.0) -> tup
         r = 0.5 * params.scope_diameter_mm * 1e-3
         L = 0.05 / params.n_links
         cap = p.createCollisionShape(p.GEOM_CAPSULE, radius=r, height=L, physicsClientId=c)
-        s = p.createMultiBody(params.linear_density_kg_m * L, cap, -1, [0.0, 0.0, r],
+        s = p.createMultiBody(params.linear_density_kg_m * params.mass_scale * L, cap, -1, [0.0, 0.0, r],
                               p.getQuaternionFromEuler([0.5 * math.pi, 0.0, 0.0]), physicsClientId=c)
         p.changeDynamics(s, -1, contactStiffness=params.contact_stiffness, contactDamping=params.contact_damping,
                          lateralFriction=params.friction_dynamic, restitution=0.0, linearDamping=0.0,
@@ -717,11 +723,30 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
 
     BLAS is limited to one thread meanwhile: the loop does thousands of tiny (20x20) matrix
     operations, for which OpenBLAS's thread hand-off cost ~40 % of the run time here.
+
+    A run that goes unstable (penetration deeper than ``unstable_penetration_mm``, or a
+    non-finite pose) is redone with half the time step, at most ``max_step_halvings`` times;
+    the report says which step was used (``time_step_s``) and lists the runs given up.
     """
     from threadpoolctl import threadpool_limits
 
+    params = params or SimParams()
+    given_up = []
     with threadpool_limits(limits=1, user_api="blas"):
-        return _simulate(trajectory, mesh, params, geometry)
+        for _ in range(params.max_step_halvings + 1):
+            res = _simulate(trajectory, mesh, params, geometry)
+            stable = (np.all(np.isfinite(res.tip_poses))
+                      and res.report["penetration_mm"]["max"] <= params.unstable_penetration_mm)
+            if stable or len(given_up) == params.max_step_halvings:
+                break
+            given_up.append({"time_step_s": params.time_step_s, "penetration_mm_max": res.report["penetration_mm"]["max"],
+                             "wall_time_s": res.report["wall_time_s"]})
+            params = dataclasses.replace(params, time_step_s=0.5 * params.time_step_s)
+    res.report["unstable_runs"] = given_up
+    if given_up:       # the speed of the whole call, retries included
+        res.report["wall_time_s"] += sum(g["wall_time_s"] for g in given_up)
+        res.report["realtime_factor"] = res.report["duration_s"] / res.report["wall_time_s"]
+    return res
 
 
 def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,

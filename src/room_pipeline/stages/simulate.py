@@ -74,6 +74,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     if isinstance(report.get("mesh"), dict):
         report["mesh"] = {k: v for k, v in report["mesh"].items() if k != "build_time_s"}
     report["entrance_faces_removed"] = n_dropped
+    report["unstable_runs"] = [{k: v for k, v in u.items() if k not in _TIMING_KEYS} for u in report["unstable_runs"]]
     sim_doc = res.to_dict()
     sim_doc["report"] = report
     sim_doc["metadata"] = metadata("simulate", patient, cfg, ("simulate",), sequence=sequence)
@@ -93,6 +94,7 @@ def run(cfg: DictConfig, key: str) -> dict:
                "view_error_max_deg": round(r["tracking_error_deg"]["max"], 4),
                "contact_force_max_n": round(r["contact_force_n"]["max"], 6),
                "penetration_max_mm": round(r["penetration_mm"]["max"], 6),
+               "time_step_s": r["time_step_s"], "unstable_runs": len(r["unstable_runs"]),
                "realtime_factor": round(r["realtime_factor"], 3),
                "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
     write_metrics(paths, f"simulate_{sequence}", metrics)
