@@ -203,9 +203,15 @@ def limit_threads(n: int) -> None:
         sys.modules["cv2"].setNumThreads(n)
 
 
-def _worker_state(init: Init | None, threads: int) -> Any:
+def _worker_state(init_bytes: bytes, threads: int, loads: Callable[[bytes], Any] = pickle.loads) -> Any:
+    """The worker's state, built after its thread limits are set.
+
+    ``init`` arrives pickled and is unpickled only here, after :func:`limit_threads`: unpickling
+    imports the factory's modules (NumPy, Open3D, OpenImageIO, ...), and OpenMP and OpenBLAS size
+    their thread pools from the environment when they load.
+    """
     limit_threads(threads)
-    state = _build_state(init)
+    state = _build_state(loads(init_bytes))
     limit_threads(threads)
     return state
 
@@ -247,7 +253,7 @@ _WORKER_STATE: Any = None
 _WORKER_ERROR: BaseException | None = None
 
 
-def _local_init(init: Init | None, threads: int) -> None:
+def _local_init(init: bytes, threads: int) -> None:
     """Process-pool initializer: build this process's state once (errors are kept and raised per chunk)."""
     global _WORKER_STATE, _WORKER_ERROR
     try:
@@ -274,14 +280,14 @@ class LocalExecutor(_Base):
     def _ensure_pool(self) -> cf.ProcessPoolExecutor:
         if self._pool is None:
             try:
-                pickle.dumps(self.init)
+                init = pickle.dumps(self.init)
             except Exception as exc:
                 raise TypeError(f"execution.backend=local: the worker initializer cannot be sent to a process "
                                   f"({_first_line(exc)}); use module-level functions and picklable arguments") \
                     from None
             self._pool = cf.ProcessPoolExecutor(max_workers=self.workers,
                                                 mp_context=multiprocessing.get_context("spawn"),
-                                                initializer=_local_init, initargs=(self.init, self.threads))
+                                                initializer=_local_init, initargs=(init, self.threads))
         return self._pool
 
     def map(self, fn, items, *, desc: str = "") -> list:
@@ -333,10 +339,12 @@ class LocalExecutor(_Base):
 class _RayWorker:
     """The body of one Ray actor: the state built once, then chunks of items."""
 
-    def __init__(self, init: Init | None, threads: int) -> None:
+    def __init__(self, init: bytes, threads: int) -> None:
         self.error: BaseException | None = None
         try:
-            self.state = _worker_state(init, threads)
+            from ray import cloudpickle
+
+            self.state = _worker_state(init, threads, cloudpickle.loads)
         except BaseException as exc:  # noqa: BLE001 - raised with the first chunk, as the original type
             self.state, self.error = None, exc
 
@@ -393,7 +401,8 @@ class RayExecutor(_Base):
             self._owns_ray = True
         if not self._actors:
             cls = ray.remote(num_cpus=1)(_RayWorker)
-            self._actors = [cls.remote(self.init, self.threads) for _ in range(self.workers)]
+            init = self.ray.cloudpickle.dumps(self.init)      # unpickled in the actor after its thread limits
+            self._actors = [cls.remote(init, self.threads) for _ in range(self.workers)]
         return self._actors
 
     def _raise_from(self, exc: BaseException, desc: str) -> None:
