@@ -60,7 +60,8 @@ def render_sequence(root: Path, n: int = N_FRAMES, size: int = SIZE, modalities=
     write_json(paths.sequence_metadata(SEQUENCE) / "trajectory.json",
                {"frames": [{"timestamp": 0.1 * k, "pose": poses[k].tolist()} for k in range(n)]})
     cfg = OmegaConf.create({"output_dir": str(root),
-                            "render": {"width": size, "height": size, "fov_deg": FOV, "modalities": list(modalities)}})
+                            "render": {"width": size, "height": size, "fov_deg": FOV, "modalities": list(modalities),
+                                       "poses": "planned"}})
     render.run(cfg, f"{PATIENT}/{SEQUENCE}")
     return paths.sequence(SEQUENCE)
 

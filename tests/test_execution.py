@@ -594,7 +594,7 @@ def rendered_serial(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("serial")
     render_sequence(root, n=7, size=32)
-    return root, {"width": 32, "height": 32, "fov_deg": FOV, "modalities": list(RENDERED)}
+    return root, {"width": 32, "height": 32, "fov_deg": FOV, "modalities": list(RENDERED), "poses": "planned"}
 
 
 @pytest.mark.parametrize("backend", ["local", "ray"])
@@ -635,7 +635,7 @@ def test_render_stage_cycles_bytes_do_not_depend_on_the_executor(tmp_path):
     from tests.test_dataset import FOV, render_sequence
 
     render = {"width": 24, "height": 24, "fov_deg": FOV, "modalities": ["rgb", "depth"], "backend": "cycles",
-              "cycles_samples": 4}
+              "cycles_samples": 4, "poses": "planned"}
     ref = tmp_path / "ref"
     render_sequence(ref, n=3, size=24, modalities=("rgb", "depth"))
     serial = tmp_path / "serial"

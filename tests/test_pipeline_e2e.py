@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 #: a small phantom so the whole chain runs in seconds (coarse voxels, fewer generations)
-SMALL = ["phantom.spacing_mm=[1.2,1.2,1.2]", "phantom.max_generation=5", "sequences=[sequence_000]",
+SMALL = ["patients=phantom_single", "phantom.spacing_mm=[1.2,1.2,1.2]", "phantom.max_generation=5", "sequences=[sequence_000]",
          "trajectory.n=1", "render.width=64", "render.height=48", "render.max_frames=4",
          "render.modalities=[rgb,depth,relative_depth,normals,flow,segmentation,point_cloud]",
          # depth stages: the built-in estimators only, a tiny U-Net trained for two steps, no external data set
@@ -36,7 +36,7 @@ TIMED: set = set()
 
 def _dvc_name(stage: str) -> str:
     fan = FAN_OUT[stage]
-    return stage if fan == "dataset" else f"{stage}{P}-sequence_000" if fan == "sequences" else f"{stage}{P}"
+    return stage if fan in ("dataset", "training") else f"{stage}{P}-sequence_000" if fan == "sequences" else f"{stage}{P}"
 
 
 #: the stages after render (sensor noise, evaluations, tables): they all read what it renders

@@ -53,6 +53,8 @@ def build_dataset(root: Path) -> Path:
 
     paths = PatientPaths(root, PATIENT)
     write_obj(paths.mesh, tube(radius=RADIUS, z0=-5 * MM, z1=90 * MM, n_theta=32, n_z=30))
+    write_obj(paths.collision_mesh, tube(radius=RADIUS, z0=-5 * MM, z1=90 * MM, n_theta=32, n_z=30))
+    write_json(paths.mesh_metadata, {"report": {}})
     z0 = np.linspace(-5, 40, 7)[:, None] * MM
     z1 = np.linspace(40, 90, 8)[:, None] * MM
     graph = CentrelineGraph([GraphBranch(0, -1, 0, np.hstack([np.zeros((7, 2)), z0]), np.full(7, RADIUS)),
@@ -156,7 +158,7 @@ def test_every_image_is_a_decodable_data_uri_of_its_stated_size(page):
 def test_summary_counts_and_conventions(page):
     s = section(page, "summary")
     assert "1 patient(s), 2 sequence(s) with metadata, 1 rendered" in s
-    assert f"{N_FRAMES} (open3d_raycast, planned poses)" in s and f"{SIZE}x{SIZE}" in s
+    assert f"{N_FRAMES} (open3d_raycast, simulated poses)" in s and f"{SIZE}x{SIZE}" in s
     assert "not rendered: no metadata/render.json" in s
     assert "RAS+" in s and "OpenCV: x right, y down, z forward" in s and "4x4 camera-to-world" in s
 

@@ -63,7 +63,7 @@ class RenderParams:
     """Keys of ``conf/render/default.yaml`` (see its comments for units)."""
 
     backend: str = "raycast"
-    poses: str = "planned"
+    poses: str = "simulated"
     modalities: tuple = ("rgb", "depth", "relative_depth", "normals", "flow", "segmentation")
     frame_stride: int = 1
     max_frames: int | None = None
