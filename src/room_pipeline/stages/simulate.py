@@ -78,7 +78,8 @@ def run(cfg: DictConfig, key: str) -> dict:
     sim_doc = res.to_dict()
     sim_doc["report"] = report
     sim_doc["metadata"] = metadata("simulate", patient, cfg, ("simulate",), sequence=sequence)
-    collision = read_json(paths.mesh_metadata).get("report", {}).get("collision")
+    mesh_meta = read_json(paths.mesh_metadata) if paths.mesh_metadata.is_file() else {}
+    collision = mesh_meta.get("report", {}).get("collision")
     write_json(meta_dir / "robot_config.json", {**robot_config(params, geometry),
                                                "collision_mesh": {"file": paths.collision_mesh.name,
                                                                   "units": "m; error bounds mm", **(collision or {})},
