@@ -318,6 +318,20 @@ def test_orb_vo_skips_a_blank_frame_and_splits_lost_tracking(textured):
     np.testing.assert_allclose(res.poses_c2w[5], np.eye(4))
 
 
+def test_orb_vo_lowers_the_fast_threshold_on_low_contrast_frames(textured):
+    """A faint texture (contrast x0.3): the fixed threshold finds too few corners, the halving finds enough."""
+    images, gt = textured
+    faint = [np.clip(128 + (im.astype(np.float32) - 128) * 0.3, 0, 255).astype(np.uint8) for im in images]
+    fixed = pm.PoseMethodParams(orb=pm.OrbParams.from_dict({"min_keypoints": 0}))
+    res_fixed = pm.METHODS["orb_vo"].estimate(faint, CAM.K, fixed)
+    res = pm.METHODS["orb_vo"].estimate(faint, CAM.K, PARAMS)
+    assert res.info["median_keypoints"] > 2 * res_fixed.info["median_keypoints"]
+    assert res.info["fast_threshold_median"] < 10 and res.registered.sum() >= res_fixed.registered.sum()
+    assert res.registered.all(), res.info
+    with pytest.raises(ConfigError):
+        pm.OrbParams.from_dict({"fast_threshold_min": 0})
+
+
 @pytest.mark.parametrize("name", ["colmap", "orb_vo"])
 def test_textureless_sequence_scores_zero_without_crash(textureless, name):
     images, gt = textureless

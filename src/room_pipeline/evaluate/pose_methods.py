@@ -89,6 +89,8 @@ class OrbParams:
 
     n_features: int = 2000
     fast_threshold: int = 10
+    min_keypoints: int = 300
+    fast_threshold_min: int = 2
     scale_factor: float = 1.2
     n_levels: int = 8
     ratio: float = 0.8
@@ -101,6 +103,9 @@ class OrbParams:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "OrbParams":
         p = params_from_dict(cls, d, "evaluate.pose.orb")
+        if p.min_keypoints < 0 or not 1 <= p.fast_threshold_min <= p.fast_threshold:
+            raise ConfigError("evaluate.pose.orb: min_keypoints >= 0 and 1 <= fast_threshold_min <= "
+                              "fast_threshold required")
         if (p.n_features < 8 or p.min_matches < 5 or p.min_inliers < 5 or p.max_skips < 0
                 or not 0.0 < p.ratio <= 1.0):
             raise ConfigError("evaluate.pose.orb: n_features >= 8, min_matches >= 5, min_inliers >= 5, "
@@ -209,11 +214,19 @@ class OrbVO:
         _, _, K = _check_inputs(images, K)
         p = params.orb
         n = len(images)
-        orb = cv2.ORB_create(nfeatures=p.n_features, scaleFactor=p.scale_factor, nlevels=p.n_levels,
-                             fastThreshold=p.fast_threshold)
-        feats = []
+        feats, thresholds = [], []
         for im in images:
-            kp, des = orb.detectAndCompute(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), None)
+            # low-contrast endoscopic images: a fixed FAST threshold finds (almost) nothing on a smooth
+            # mucosa until sensor noise lifts corners over it; halve it while too few keypoints are found
+            gray, thr = cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), p.fast_threshold
+            while True:
+                orb = cv2.ORB_create(nfeatures=p.n_features, scaleFactor=p.scale_factor, nlevels=p.n_levels,
+                                     fastThreshold=thr)
+                kp, des = orb.detectAndCompute(gray, None)
+                if len(kp) >= p.min_keypoints or thr <= p.fast_threshold_min:
+                    break
+                thr = max(p.fast_threshold_min, thr // 2)
+            thresholds.append(thr)
             feats.append((np.array([k.pt for k in kp], np.float64).reshape(-1, 2), des))
         steps = {"ok": 0, "few_matches": 0, "no_essential": 0, "few_inliers": 0}
         inliers = []
@@ -245,6 +258,7 @@ class OrbVO:
         info = {"steps": steps, "segments": len([s for s in segments if len(s) >= 2]),
                 "median_inliers": float(np.median(inliers)) if inliers else 0.0,
                 "median_keypoints": float(np.median([len(f[0]) for f in feats])),
+                "fast_threshold_median": float(np.median(thresholds)) if thresholds else None,
                 "scale": "unit translation per step (monocular; fixed by the Sim(3) alignment)"}
         return PoseResult(poses, reg, time.perf_counter() - t0, info)
 
