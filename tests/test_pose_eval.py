@@ -332,6 +332,22 @@ def test_orb_vo_lowers_the_fast_threshold_on_low_contrast_frames(textured):
         pm.OrbParams.from_dict({"fast_threshold_min": 0})
 
 
+def test_colmap_lowers_the_sift_threshold_on_low_contrast_frames(textured):
+    """The same faint texture: COLMAP's SIFT threshold is halved until the probe frames give enough keypoints."""
+    import pycolmap
+
+    images, gt = textured
+    faint = [np.clip(128 + (im.astype(np.float32) - 128) * 0.3, 0, 255).astype(np.uint8) for im in images]
+    p = pm.ColmapParams()
+    thr = pm.Colmap.peak_threshold(pycolmap, faint, p)
+    assert p.peak_threshold_min <= thr < p.peak_threshold
+    assert pm.Colmap.peak_threshold(pycolmap, faint, pm.ColmapParams.from_dict({"min_keypoints": 0})) == 0.004
+    res = pm.METHODS["colmap"].estimate(faint, CAM.K, PARAMS)
+    assert res.info["peak_threshold"] == thr and res.registered.sum() >= len(images) - 1, res.info
+    with pytest.raises(ConfigError):
+        pm.ColmapParams.from_dict({"peak_threshold_min": 0.01})
+
+
 @pytest.mark.parametrize("name", ["colmap", "orb_vo"])
 def test_textureless_sequence_scores_zero_without_crash(textureless, name):
     images, gt = textureless

@@ -61,6 +61,8 @@ class ColmapParams:
     quadratic_overlap: bool = False
     max_num_features: int = 4096
     peak_threshold: float = 0.004
+    min_keypoints: int = 300
+    peak_threshold_min: float = 0.0005
     max_ratio: float = 0.8
     min_num_matches: int = 15
     init_min_tri_angle_deg: float = 4.0
@@ -78,6 +80,9 @@ class ColmapParams:
                               "and num_threads >= 1 required")
         if not 0 <= p.log_level <= 3:
             raise ConfigError("evaluate.pose.colmap.log_level must be 0 (info) .. 3 (fatal only)")
+        if p.min_keypoints < 0 or not 0.0 < p.peak_threshold_min <= p.peak_threshold:
+            raise ConfigError("evaluate.pose.colmap: min_keypoints >= 0 and 0 < peak_threshold_min <= "
+                              "peak_threshold required")
         if not 0.0 < p.max_ratio <= 1.0 or not 0.0 < p.init_max_forward_motion <= 1.0:
             raise ConfigError("evaluate.pose.colmap: max_ratio and init_max_forward_motion must be in (0, 1]")
         return p
@@ -317,6 +322,28 @@ class Colmap:
         mapping.triangulation.random_seed = seed
         return reader, extract, match, pairing, verify, mapping
 
+    @staticmethod
+    def peak_threshold(pycolmap, images: list[np.ndarray], p: ColmapParams, n_probe: int = 5) -> float:
+        """SIFT peak threshold for this sequence: ``peak_threshold``, halved (down to ``peak_threshold_min``)
+        while the median keypoint count of up to ``n_probe`` evenly spaced frames is under ``min_keypoints``
+        (low-contrast endoscopic frames give a few dozen SIFT keypoints at COLMAP's usual threshold)."""
+        thr = p.peak_threshold
+        if p.min_keypoints <= 0 or not images:
+            return thr
+        probe = [images[int(i)] for i in np.unique(np.linspace(0, len(images) - 1, n_probe).round())]
+        grays = [(im.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)) / 255.0 for im in probe]
+        opts = pycolmap.FeatureExtractionOptions()
+        opts.use_gpu = False
+        opts.num_threads = p.num_threads
+        opts.sift.max_num_features = p.max_num_features
+        while True:
+            opts.sift.peak_threshold = thr
+            sift = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
+            counts = [len(sift.extract_from_float32_array(np.ascontiguousarray(g))[0]) for g in grays]
+            if np.median(counts) >= p.min_keypoints or thr <= p.peak_threshold_min:
+                return thr
+            thr = max(p.peak_threshold_min, 0.5 * thr)
+
     def estimate(self, images: list[np.ndarray], K: np.ndarray, params: PoseMethodParams) -> PoseResult:
         import pycolmap
 
@@ -325,6 +352,12 @@ class Colmap:
         n = len(images)
         p = params.colmap
         pycolmap.set_random_seed(int(params.seed))
+        log_level = pycolmap.logging.minloglevel
+        pycolmap.logging.minloglevel = p.log_level
+        try:
+            p = dataclasses.replace(p, peak_threshold=self.peak_threshold(pycolmap, images, p))
+        finally:
+            pycolmap.logging.minloglevel = log_level
         reader, extract, match, pairing, verify, mapping = self._options(pycolmap, p, K, n, int(params.seed))
         names = [f"frame_{k:04d}.png" for k in range(n)]
         log_level = pycolmap.logging.minloglevel
@@ -336,7 +369,8 @@ class Colmap:
         finally:
             pycolmap.logging.minloglevel = log_level
         if not recs:
-            return PoseResult.empty(n, time.perf_counter() - t0, error="no reconstruction", reconstructions=0)
+            return PoseResult.empty(n, time.perf_counter() - t0, error="no reconstruction", reconstructions=0,
+                                    peak_threshold=p.peak_threshold)
         best_key = max(sorted(recs), key=lambda k: recs[k].num_reg_images())
         rec = recs[best_key]
         index = {name: k for k, name in enumerate(names)}
@@ -351,7 +385,8 @@ class Colmap:
             poses[k] = np.linalg.inv(w2c)
             reg[k] = True
         info = {"reconstructions": len(recs), "points3D": int(rec.num_points3D()),
-                "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error())}
+                "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+                "peak_threshold": p.peak_threshold}
         return PoseResult(poses, reg, time.perf_counter() - t0, info)
 
     @staticmethod
