@@ -361,7 +361,8 @@ def test_exposure_fixed_and_auto():
 
 def test_look_at_is_a_right_handed_opencv_pose_even_when_down_is_parallel():
     for fwd, down in (([0.0, 0.0, 1.0], [0.0, 1.0, 0.0]), ([1.0, 2.0, -0.5], [0.3, -1.0, 0.2]),
-                      ([0.0, 1.0, 0.0], [0.0, 2.0, 0.0])):                      # last: down parallel to forward
+                      ([0.0, 1.0, 0.0], [0.0, 2.0, 0.0]),                        # down parallel to forward
+                      ([1.0, 0.0, 0.0], [-3.0, 0.0, 0.0])):                      # ... and both along world x
         T = look_at([1.0, 2.0, 3.0], fwd, down)
         R = T[:3, :3]
         np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)

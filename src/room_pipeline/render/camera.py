@@ -88,8 +88,8 @@ def look_at(eye, forward, down=(0.0, 1.0, 0.0)) -> np.ndarray:
     z = z / np.linalg.norm(z)
     d = np.asarray(down, dtype=float)
     y = d - np.dot(d, z) * z
-    if np.linalg.norm(y) < 1e-9:
-        y = np.cross(z, [1.0, 0.0, 0.0])
+    if np.linalg.norm(y) < 1e-9:                # down parallel to forward: the least aligned world axis
+        y = np.cross(z, np.eye(3)[int(np.argmin(np.abs(z)))])
     y = y / np.linalg.norm(y)
     T = np.eye(4)
     T[:3, :3] = np.stack([np.cross(y, z), y, z], axis=1)
