@@ -43,25 +43,99 @@ def _config(args: argparse.Namespace):
     return compose(args.overrides)
 
 
+def _validate(cfg, stage: str | None = None, key: str | None = None) -> None:
+    """The whole composed config (and a stage's --patient), checked before any work (imported by name: no
+    stage's code becomes another's DVC dependency)."""
+    import importlib
+
+    from . import stages
+
+    mod = importlib.import_module("room_pipeline.config.validate")
+    if stage is not None and key is not None:
+        mod.validate_key(cfg, stage, key, stages.FAN_OUT[stage])
+    mod.validate_config(cfg)
+
+
+def stage_output_paths(cfg, name: str, key: str) -> list[Path]:
+    """What stage ``name`` writes for ``key``: its declared outputs and its metrics file."""
+    from . import stages
+    from .paths import PatientPaths
+
+    outs = [Path(p) for p in stages.load(name).outputs(cfg, key)]
+    fan = stages.FAN_OUT[name]
+    if fan != "dataset":
+        patient, _, sequence = key.partition("/")
+        metric = f"{name}_{sequence}" if sequence else name
+        outs.append(PatientPaths(Path(cfg.output_dir), patient).metrics(metric))
+    return outs
+
+
 def cmd_stage(args: argparse.Namespace) -> int:
     from . import stages
+    from .io.outputs import stage_outputs
 
     module = stages.load(args.name)
     cfg = _config(args)
-    metrics = module.run(cfg, args.patient)
+    _validate(cfg, args.name, args.patient)
+    manifest = Path(cfg.output_dir) / "manifest.json"
+    with stage_outputs(stage_output_paths(cfg, args.name, args.patient), manifest=manifest):
+        metrics = module.run(cfg, args.patient)
     if not args.quiet:
         summary = ", ".join(f"{k}={v}" for k, v in metrics.items() if not isinstance(v, dict))
         print(f"[{args.name}] {args.patient}: {summary}")
     return 0
 
 
+#: seconds `room run` gives an interrupted stage to clean up before it is killed
+STAGE_GRACE_S = 30.0
+
+
+def _run_stage_process(cmd: list[str]) -> int:
+    """Run one stage process; on SIGINT/SIGTERM forward the signal, give it STAGE_GRACE_S to clean up, then kill.
+
+    Returns the stage's exit status; an interruption re-raises (KeyboardInterrupt or Terminated) after the
+    stage has exited.
+    """
+    import signal
+
+    from .io.outputs import Terminated
+
+    proc = subprocess.Popen(cmd)
+
+    def on_term(signum, frame):
+        raise Terminated(signum)
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        return proc.wait()
+    except (KeyboardInterrupt, Terminated) as exc:
+        sig = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        try:
+            if proc.poll() is None:
+                proc.send_signal(sig)        # a terminal's Ctrl-C reached it already; a `kill -INT` did not
+            proc.wait(timeout=STAGE_GRACE_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        except KeyboardInterrupt:            # a second Ctrl-C: stop waiting
+            proc.kill()
+            proc.wait()
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> int:
     """Run the stages in order for one patient with the composed config ``cfg``; 0 or the failed stage's exit status.
 
-    Each stage runs in its own process from ``<output_dir>/<patient>/run_config.yaml`` (as DVC runs them
-    from params.yaml).  The patient is ``patient``, else the config's ``patient`` key (``+patient=ID``, e.g.
-    swept by ``room run -m``), else the first configured.  After the last stage, ``<output_dir>/manifest.json``
-    lists every file under output_dir with its sha256, the resolved config and the library versions.
+    The whole config is validated first (one error line, before any stage).  Each stage runs in its own
+    process from ``<output_dir>/<patient>/run_config.yaml`` (as DVC runs them from params.yaml).  The patient
+    is ``patient``, else the config's ``patient`` key (``+patient=ID``, e.g. swept by ``room run -m``), else the
+    first configured.  Any ``manifest.json`` of an earlier run is removed first and temporary files a killed
+    run left are removed; after the last stage, ``<output_dir>/manifest.json`` lists every file under
+    output_dir with its sha256, the resolved config and the library versions.  A stage that fails prints its
+    own one-line reason; `room run` adds no second line for it.
     """
     import importlib
 
@@ -70,6 +144,7 @@ def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> i
     from . import stages
     from .config.compose import patient_entry
     from .io.atomic import write_text
+    from .io.outputs import remove_outputs, remove_temp_files
 
     # imported by name (like TOOLS): `room stage`, which dvc.yaml runs, does not depend on `room run`'s manifest code
     write_manifest = importlib.import_module("room_pipeline.execution.manifest").write_manifest
@@ -79,6 +154,7 @@ def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> i
         raise RoomError("no patients configured")
     patient = patient or cfg.get("patient") or patients[0]
     patient_entry(cfg, patient)  # validates
+    _validate(cfg)
     is_phantom = patient in (cfg.get("phantoms") or {})
     trains = patient == str(OmegaConf.select(cfg, "depth.cnn.checkpoint_patient", default=""))
     order = [s for s in stages.STAGES if (is_phantom or stages.FAN_OUT[s] != "phantoms")
@@ -89,6 +165,9 @@ def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> i
         order = order[: order.index(until) + 1]
     output_dir = Path(cfg.output_dir)
     run_dir = output_dir / patient
+    remove_outputs([output_dir / "manifest.json"])
+    if output_dir.is_dir():
+        remove_temp_files([output_dir])      # leftovers of a killed run (SIGKILL gives no chance to clean)
     config_path = run_dir / "run_config.yaml"
     write_text(config_path, OmegaConf.to_yaml(cfg))
     for name in order:
@@ -97,11 +176,12 @@ def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> i
                 else ["all"] if fan == "dataset" else [patient])
         for key in keys:
             print(f"room run: stage {name} ({key})", flush=True)
-            rc = subprocess.call([sys.executable, "-m", "room_pipeline.cli", "stage", name,
-                                  "--patient", key, "--params", str(config_path)])
+            rc = _run_stage_process([sys.executable, "-m", "room_pipeline.cli", "stage", name,
+                                     "--patient", key, "--params", str(config_path)])
             if rc != 0:
-                print(f"room: error: stage '{name}' failed for {key} (exit {rc})", file=sys.stderr)
-                return rc
+                if rc not in (2, 130, 143, -2, -15):     # the stage printed no `room: error:` line of its own
+                    print(f"room: error: stage '{name}' failed for {key} (exit {rc})", file=sys.stderr)
+                return rc if rc > 0 else 128 - rc
     manifest = write_manifest(output_dir, OmegaConf.to_container(cfg, resolve=True),
                               extra={"room_run": {"patient": patient, "stages": order}})
     print(f"room run: done -> {run_dir} (manifest: {manifest})")
@@ -248,6 +328,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("room: interrupted", file=sys.stderr)
         return 130
+    except BaseException as exc:
+        from .io.outputs import Terminated
+
+        if isinstance(exc, Terminated):
+            print("room: terminated", file=sys.stderr)
+            return 143
+        raise
 
 
 if __name__ == "__main__":

@@ -95,6 +95,16 @@ def patient_entry(cfg: DictConfig, patient: str) -> dict:
     kind = entry.get("kind")
     if kind not in ("ct", "mask"):
         raise ConfigError(f"patients.{patient}.kind must be 'ct' or 'mask', got {kind!r}")
-    if not entry.get("input"):
-        raise ConfigError(f"patients.{patient}.input is empty")
+    if not entry.get("input") or not isinstance(entry.get("input"), str):
+        raise ConfigError(f"patients.{patient}.input must be a path, got {entry.get('input')!r}")
+    for key in ("mask_label", "mask_threshold"):
+        v = entry.get(key)
+        if v is None:
+            continue
+        if kind != "mask":
+            raise ConfigError(f"patients.{patient}.{key} applies to kind: mask only")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v:
+            raise ConfigError(f"patients.{patient}.{key} must be a number, got {v!r}")
+    if entry.get("mask_label") is not None and entry.get("mask_threshold") is not None:
+        raise ConfigError(f"patients.{patient}: give mask_label or mask_threshold, not both")
     return entry  # type: ignore[return-value]

@@ -36,6 +36,7 @@ from typing import Any, Mapping
 
 from ..errors import InputError
 from ..io.atomic import write_json
+from ..io.outputs import is_temp
 
 MANIFEST_NAME = "manifest.json"
 FORMAT = "room-manifest/1"
@@ -79,7 +80,7 @@ def _files(root: Path) -> list[Path]:
         dirnames.sort()
         for name in filenames:
             p = Path(dirpath) / name
-            if p.is_file() and p != root / MANIFEST_NAME:
+            if p.is_file() and p != root / MANIFEST_NAME and not is_temp(name):   # a writer's temp file is no data
                 found.append(p)
     return sorted(found, key=lambda p: p.relative_to(root).as_posix())
 
@@ -263,7 +264,9 @@ def stale_temp_files(root: str | os.PathLike) -> list[Path]:
     suffix of ``<name>`` -- the names ``atomic_path`` gives -- and nothing else.
     """
     out = []
-    for p in _files(Path(root)):
+    root = Path(root)
+    every = [Path(d) / f for d, _, fs in os.walk(root) for f in fs]
+    for p in sorted(every):
         m = _TEMP_RE.match(p.name)
         if m and m.group("suffix") == "".join(Path(m.group("name")).suffixes):
             out.append(p)

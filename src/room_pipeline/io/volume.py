@@ -33,6 +33,8 @@ class Volume:
 
     data: np.ndarray
     affine: np.ndarray
+    #: how the volume was read (DICOM: the series chosen, its slices and checks); not carried by with_data
+    info: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         self.affine = np.asarray(self.affine, dtype=np.float64)
@@ -117,11 +119,40 @@ def read_volume(path: str | os.PathLike) -> Volume:
     except InputError:
         raise
     except Exception as exc:  # nibabel/ITK raise many types; report one line
-        raise InputError(f"cannot read volume {path}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from exc
+        raise InputError(f"cannot read volume {path}: {_reason(exc)}") from exc
     data = _squeeze_3d(np.asarray(data), path)
     if min(data.shape) < 1:
         raise InputError(f"{path}: empty volume, shape {tuple(data.shape)}")
+    check_affine(_mm_to_m(affine_mm), path)
     return Volume(data, _mm_to_m(affine_mm))
+
+
+def check_affine(affine_m: np.ndarray, path=None) -> None:
+    """A singular, non-finite or non-orthogonal (sheared) voxel-to-world affine is an :class:`InputError`."""
+    where = str(path) if path is not None else "volume"
+    a = np.asarray(affine_m, dtype=np.float64)
+    if a.shape != (4, 4) or not np.isfinite(a).all():
+        raise InputError(f"{where}: the header's affine is not a finite 4x4 matrix")
+    cols = a[:3, :3]
+    sp = np.linalg.norm(cols, axis=0)
+    if (sp <= 1e-9).any() or abs(np.linalg.det(cols)) <= 1e-18:
+        raise InputError(f"{where}: singular affine (voxel spacing {np.round(sp / MM, 4).tolist()} mm): "
+                         "the header gives no valid voxel geometry")
+    unit = cols / sp
+    shear = float(np.abs(unit.T @ unit - np.eye(3)).max())
+    if shear > 1e-3:
+        ang = float(np.degrees(np.arcsin(min(1.0, shear))))
+        raise InputError(f"{where}: non-orthogonal affine (voxel axes sheared by {ang:.2f} deg): "
+                         "resample it to an orthogonal grid first")
+
+
+def _reason(exc: BaseException) -> str:
+    """One line of a library's exception: ITK's 'sitk::ERROR: ...' line, not its source location."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    for ln in lines:
+        if "ERROR:" in ln:
+            return ln.split("ERROR:", 1)[1].strip()
+    return f"{type(exc).__name__}: {lines[0]}" if lines else type(exc).__name__
 
 
 def _mm_to_m(affine_mm: np.ndarray) -> np.ndarray:
@@ -160,6 +191,76 @@ def _read_itk(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return _itk_to_array_affine(sitk.ReadImage(str(path)))
 
 
+#: DICOM tags read per slice: ImagePositionPatient, ImageOrientationPatient, SeriesInstanceUID
+_TAG_POS, _TAG_ORI, _TAG_SERIES = "0020|0032", "0020|0037", "0020|000e"
+
+
+def _dicom_floats(reader, tag: str, f: str, n: int) -> np.ndarray:
+    if not reader.HasMetaDataKey(tag):
+        raise InputError(f"{f}: DICOM slice lacks tag ({tag}) needed to place it in space")
+    try:
+        v = np.array([float(x) for x in reader.GetMetaData(tag).strip().split("\\")], dtype=np.float64)
+    except ValueError:
+        raise InputError(f"{f}: unreadable DICOM tag ({tag}): {reader.GetMetaData(tag)!r}") from None
+    if v.size != n or not np.isfinite(v).all():
+        raise InputError(f"{f}: DICOM tag ({tag}) has {v.size} values, expected {n} finite")
+    return v
+
+
+def check_dicom_slices(files: list[str], folder: Path) -> dict:
+    """Check one series' slices as a radiology reader does; return what was found (for ``ct_metadata.json``).
+
+    Errors: slices with different orientations or from different series, two slices at one position
+    (a series stored twice, or two acquisitions), a gap larger than 1.5x the median slice spacing
+    (missing slices) and spacing that varies by more than 10 % (a variable-pitch series).
+    """
+    import SimpleITK as sitk
+
+    pos, ori, uids = [], [], set()
+    for f in files:
+        r = sitk.ImageFileReader()
+        r.SetFileName(f)
+        try:
+            r.ReadImageInformation()
+        except Exception as exc:
+            raise InputError(f"cannot read DICOM slice {f}: {_reason(exc)}") from exc
+        pos.append(_dicom_floats(r, _TAG_POS, f, 3))
+        ori.append(_dicom_floats(r, _TAG_ORI, f, 6))
+        if r.HasMetaDataKey(_TAG_SERIES):
+            uids.add(r.GetMetaData(_TAG_SERIES).strip())
+    if len(uids) > 1:
+        raise InputError(f"{folder}: the chosen slices come from {len(uids)} series ({', '.join(sorted(uids))}): "
+                         "mixed series")
+    ori_a = np.array(ori)
+    if np.abs(ori_a - ori_a[0]).max() > 1e-3:
+        n_other = int((np.abs(ori_a - ori_a[0]).max(axis=1) > 1e-3).sum())
+        raise InputError(f"{folder}: {n_other} of {len(files)} slices have another orientation than the first: "
+                         "mixed orientations (a localiser or a reformat in the series)")
+    normal = np.cross(ori_a[0, :3], ori_a[0, 3:])
+    z = np.sort(np.array(pos) @ normal)
+    d = np.diff(z)
+    med = float(np.median(d))
+    if med <= 1e-6:
+        raise InputError(f"{folder}: most slices share one position: the series is stored more than once")
+    dup = int((d < 0.01 * med).sum())
+    if dup:
+        raise InputError(f"{folder}: {dup} duplicate slice position(s) among {len(files)} slices (median spacing "
+                         f"{med:.3f} mm): a series stored twice or two acquisitions in one series")
+    gaps = np.nonzero(d > 1.5 * med)[0]
+    if gaps.size:
+        g = int(gaps[0])
+        missing = int(sum(round(d[i] / med) - 1 for i in gaps))
+        raise InputError(f"{folder}: {missing} missing slice(s): a gap of {d[g]:.3f} mm after position "
+                         f"{z[g]:.3f} mm (median spacing {med:.3f} mm)")
+    if (np.abs(d - med) > 0.1 * med).any():
+        raise InputError(f"{folder}: slice spacing varies from {d.min():.3f} to {d.max():.3f} mm: resample the "
+                         "series to a uniform spacing first")
+    return {"slices": len(files), "slice_spacing_mm": round(med, 6),
+            "series_instance_uid": next(iter(uids)) if uids else None,
+            "orientation": [round(float(x), 6) for x in ori_a[0]],
+            "checks": "one series, one orientation, no duplicate positions, no gaps > 1.5x median spacing"}
+
+
 def _read_dicom_dir(path: Path) -> Volume:
     import SimpleITK as sitk
 
@@ -168,16 +269,22 @@ def _read_dicom_dir(path: Path) -> Volume:
     if not series:
         raise InputError(f"{path}: folder holds no DICOM series")
     # the series with the most slices is the volume; others are usually scouts
-    files = max((reader.GetGDCMSeriesFileNames(str(path), s) for s in series), key=len)
+    found = {s: list(reader.GetGDCMSeriesFileNames(str(path), s)) for s in series}
+    chosen = max(sorted(found), key=lambda s: len(found[s]))
+    files = found[chosen]
     if len(files) < 2:
         raise InputError(f"{path}: DICOM series has {len(files)} slice(s); a 3-D volume needs at least 2")
+    info = check_dicom_slices(files, path)
+    info.update({"series_chosen": chosen, "series_found": {s: len(f) for s, f in sorted(found.items())},
+                 "rule": "the series with the most slices"})
     reader.SetFileNames(files)
     try:
         img = reader.Execute()
     except Exception as exc:
-        raise InputError(f"cannot read DICOM series in {path}: {str(exc).splitlines()[0]}") from exc
+        raise InputError(f"cannot read DICOM series in {path}: {_reason(exc)}") from exc
     data, affine_mm = _itk_to_array_affine(img)
-    return Volume(data, _mm_to_m(affine_mm))
+    check_affine(_mm_to_m(affine_mm), path)
+    return Volume(data, _mm_to_m(affine_mm), info={"dicom": info})
 
 
 def write_nifti(path: str | os.PathLike, volume: Volume, description: str = "",
@@ -192,6 +299,7 @@ def write_nifti(path: str | os.PathLike, volume: Volume, description: str = "",
 
     import nibabel as nib
 
+    check_affine(volume.affine, path)
     data = volume.data
     if scale_values_to_mm:
         data = (data.astype(np.float64) / MM).astype(np.float32)

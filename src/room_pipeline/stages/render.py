@@ -94,7 +94,13 @@ class RenderParams:
         if bad:
             raise ConfigError(f"render.modalities: unknown {sorted(bad)} (known: {sorted(FOLDERS)})")
         if p.frame_stride < 1 or p.width < 8 or p.height < 8 or not 1.0 < p.fov_deg < 170.0:
-            raise ConfigError("render: frame_stride >= 1, width/height >= 8 and 1 < fov_deg < 170 required")
+            raise ConfigError(f"render: frame_stride >= 1, width/height >= 8 and 1 < fov_deg < 170 required, got "
+                              f"frame_stride={p.frame_stride}, width={p.width}, height={p.height}, fov_deg={p.fov_deg}")
+        if p.max_frames is not None and (isinstance(p.max_frames, bool) or not isinstance(p.max_frames, int)
+                                         or p.max_frames < 1):
+            raise ConfigError(f"render.max_frames must be null or an integer >= 1, got {p.max_frames!r}")
+        if not 0.0 < p.near_mm < p.far_mm:
+            raise ConfigError(f"render: 0 < near_mm < far_mm required, got near_mm={p.near_mm}, far_mm={p.far_mm}")
         texture_params(p.texture)
         return p
 
