@@ -19,6 +19,10 @@ Human airway ranges (adult, intrathoracic airway lumen as segmented from CT), wi
   view (the shared real masks: 0.1-2 %); more than half means background labelled 1 (inverted) or
   an all-ones volume.
 
+* an airway segmented from a chest CT holds at least ``MIN_CT_TREE_VOLUME_ML`` = 8 ml and branches: the scan
+  covers the lungs, so the intrathoracic trachea (>= ~60 mm of >= 10 mm lumen, ~4.7 ml) and both main
+  bronchi are in it.
+
 These are physiological ranges, not fitted to any sample.  A mask may be broken into pieces: the largest
 26-connected piece is kept when it holds at least ``MIN_LARGEST_PIECE_FRACTION`` (0.5) of the lumen
 (the repair is stated), otherwise it is an error.
@@ -42,6 +46,9 @@ MAX_INSCRIBED_RADIUS_MM = 16.0
 MAX_EXTENT_MM = 400.0
 MAX_FOREGROUND_FRACTION = 0.5
 MIN_LARGEST_PIECE_FRACTION = 0.5
+#: airway segmented from a chest CT: the scan covers the lungs, so it holds the intrathoracic trachea
+#: (>= ~60 mm of >= 10 mm lumen, Breatnach et al.: >= 4.7 ml) and both main bronchi
+MIN_CT_TREE_VOLUME_ML = 8.0
 #: a probability map / label map has at most this many distinct values before it is taken for an image
 _MAX_LABELS = 64
 #: non-finite CT voxels repaired (mean of finite neighbours) up to this fraction; more is an error
@@ -90,6 +97,8 @@ def check_ct(ct: Volume, path=None) -> tuple[Volume, dict]:
     data = np.asarray(ct.data)
     lo, hi = float(data.min()), float(data.max())
     values = np.unique(data[:: max(1, data.size // 2_000_000)]) if data.size else np.array([])
+    if values.size == 1 and lo == hi:
+        raise InputError(f"{_where(path)}: every voxel is {lo:g}: a blank image, not a CT")
     if values.size <= 2 and lo >= 0:
         raise InputError(f"{_where(path)}: values {values.tolist()} look like a binary mask, not a CT in HU: "
                          "give it as `kind: mask`")
@@ -297,6 +306,16 @@ def check_mask(vol: Volume, path=None, label: float | None = None, threshold: fl
         raise InputError(f"{where}: the segmented air ({volume_ml:.1f} ml) has no trachea-calibre tube "
                          f"({TRACHEA_DIAMETER_MM[0]:g}-{TRACHEA_DIAMETER_MM[1]:g} mm across, >= {_TRACHEA_RUN_MM:g} mm "
                          "long) at its superior end: not an airway tree (a scan without the trachea?)")
+    if not given and volume_ml < MIN_CT_TREE_VOLUME_ML:
+        raise InputError(f"{where}: the air found holds {volume_ml:.1f} ml ({' x '.join(f'{e:.0f}' for e in extent)} "
+                         f"mm); a chest CT's airway tree holds >= {MIN_CT_TREE_VOLUME_ML:g} ml (the intrathoracic "
+                         "trachea alone): an air pocket, not an airway tree (is the chest in the scan?)")
+    if not given:      # air segmented from a CT: an airway tree branches (an air pocket does not)
+        most = max(ndi.label(np.take(crop, i, axis=sup_axis), np.ones((3, 3), bool))[1]
+                   for i in range(crop.shape[sup_axis]))
+        if most < 2:
+            raise InputError(f"{where}: the air found ({volume_ml:.1f} ml, {' x '.join(f'{e:.0f}' for e in extent)} mm) "
+                             "never branches: a single air pocket, not an airway tree (is the chest in the scan?)")
     if header[0] < _TRACHEA_RUN_MM:
         report["warnings"] = [f"no trachea-calibre tube ({TRACHEA_DIAMETER_MM[0]:g}-{TRACHEA_DIAMETER_MM[1]:g} mm) "
                               f"found at the superior end (longest {header[0]:.0f} mm)"]

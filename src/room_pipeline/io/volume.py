@@ -167,8 +167,16 @@ def _m_to_mm(affine_m: np.ndarray) -> np.ndarray:
     return a
 
 
-def _itk_to_array_affine(img) -> tuple[np.ndarray, np.ndarray]:
+def _sitk():
+    """SimpleITK with its warnings off: they go to stderr beside the one error line (the checks here report)."""
     import SimpleITK as sitk
+
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    return sitk
+
+
+def _itk_to_array_affine(img) -> tuple[np.ndarray, np.ndarray]:
+    sitk = _sitk()
 
     if img.GetDimension() != 3:
         raise InputError(f"expected a 3-D image, got {img.GetDimension()}-D")
@@ -186,7 +194,7 @@ def _itk_to_array_affine(img) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _read_itk(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    import SimpleITK as sitk
+    sitk = _sitk()
 
     return _itk_to_array_affine(sitk.ReadImage(str(path)))
 
@@ -214,7 +222,7 @@ def check_dicom_slices(files: list[str], folder: Path) -> dict:
     (a series stored twice, or two acquisitions), a gap larger than 1.5x the median slice spacing
     (missing slices) and spacing that varies by more than 10 % (a variable-pitch series).
     """
-    import SimpleITK as sitk
+    sitk = _sitk()
 
     pos, ori, uids = [], [], set()
     for f in files:
@@ -262,7 +270,7 @@ def check_dicom_slices(files: list[str], folder: Path) -> dict:
 
 
 def _read_dicom_dir(path: Path) -> Volume:
-    import SimpleITK as sitk
+    sitk = _sitk()
 
     reader = sitk.ImageSeriesReader()
     series = reader.GetGDCMSeriesIDs(str(path))

@@ -15,6 +15,7 @@ from omegaconf import DictConfig
 from ..anatomy.plausibility import check_ct, check_mask
 from ..anatomy.segment import SegmentParams, segment_airways
 from ..config.compose import patient_entry, section
+from ..errors import InputError
 from ..io.atomic import write_json
 from ..io.volume import read_volume, write_nifti
 from .common import StageTimer, file_sha256, metadata, patient_paths, write_metrics
@@ -46,7 +47,10 @@ def run(cfg: DictConfig, patient: str) -> dict:
                   **vol.info}
         if entry["kind"] == "ct":
             vol, ct_report = check_ct(vol, src)
-            res = segment_airways(vol, params)
+            try:
+                res = segment_airways(vol, params)
+            except InputError as exc:                   # name the file the reason is about
+                raise InputError(f"{src}: {exc}") from None
             checked = check_mask(res.mask, f"{src} (segmented airway)", given=False)
             report = dict(res.report, seed_voxel=list(map(int, res.seed)), threshold_hu=float(res.threshold_hu))
             data = np.asarray(vol.data, dtype=np.float64)
