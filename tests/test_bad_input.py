@@ -572,3 +572,91 @@ def test_public_trees_as_committed_axes_disagree_with_header(name):
     good = shared_path("airway_masks", "public_trees", "axes_fixed", f"{name}_fixed.nii.gz")
     rep = check_mask(read_volume(good), good).report
     assert 10 <= rep["trachea_diameter_mm"] <= 25 and 20 <= rep["lumen_volume_ml"] <= 150
+
+
+# ------------------------------------------------------------------ interruptions (slow: real `room run`s)
+#: a small phantom through render (coarse voxels, few generations, 4 small frames)
+SMALL_RUN = ["patients=phantom_single", "phantom.spacing_mm=[1.5,1.5,1.5]", "phantom.max_generation=4",
+             "trajectory.n=1", "render.width=48", "render.height=32", "render.max_frames=4",
+             "render.poses=planned"]
+UNTIL = "render"
+SAME = dict(ignore_config=("execution", "output_dir", "patients.patient_000.input"),
+            ignore_files=("*/metrics/*", "*/run_config.yaml"))
+
+
+def _run(out: Path, timeout=1200):
+    return subprocess.run([sys.executable, "-m", "room_pipeline.cli", "run", *SMALL_RUN, f"output_dir={out}",
+                           "--until", UNTIL], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def reference_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reference") / "out"
+    r = _run(out)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out
+
+
+def _interrupt(out: Path, sig: int, stage: str, delay_s: float) -> subprocess.CompletedProcess:
+    """Start `room run`, and `delay_s` after it starts ``stage`` send ``sig``: SIGINT to the process group (a
+    terminal's Ctrl-C), SIGTERM to `room run` alone (it forwards it), SIGKILL to the group (nothing cleans)."""
+    import os
+    import signal
+    import threading
+
+    proc = subprocess.Popen([sys.executable, "-m", "room_pipeline.cli", "run", *SMALL_RUN, f"output_dir={out}",
+                             "--until", UNTIL], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    err: list[str] = []
+    threading.Thread(target=lambda: err.append(proc.stderr.read()), daemon=True).start()
+    for line in proc.stdout:
+        if line.startswith(f"room run: stage {stage} "):
+            time.sleep(delay_s)
+            if sig == signal.SIGTERM:
+                os.kill(proc.pid, sig)
+            else:
+                os.killpg(proc.pid, sig)
+            break
+    proc.stdout.read()
+    proc.wait(timeout=300)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, "", "".join(err))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stage", ["segment", "sdf", "mesh", "render"])
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM", "SIGKILL"])
+def test_interrupted_run_then_rerun_is_byte_identical(signame, stage, reference_run, tmp_path):
+    import signal
+
+    from room_pipeline.execution import compare_manifests, read_manifest, verify_manifest
+
+    sig = getattr(signal, signame)
+    out = tmp_path / "out"
+    r = _interrupt(out, sig, stage, delay_s=1.5)
+    assert r.returncode != 0 and not (out / "manifest.json").exists()
+    if sig != signal.SIGKILL:      # the stage cleaned up: no temp file, and nothing of the interrupted stage
+        assert not [p for p in out.rglob("*") if ".tmp" in p.name], list(out.rglob("*.tmp*"))
+        assert r.returncode in (130, 143), r.stderr
+        assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    else:                          # what a killed atomic writer leaves (if the kill did not land mid-write)
+        (out / "patient_000" / "anatomy").mkdir(parents=True, exist_ok=True)
+        (out / "patient_000" / "anatomy" / ".sdf.nii.gz.K1ll3dAb.tmp.nii.gz").write_bytes(b"half")
+    r = _run(out)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert not [p for p in out.rglob("*") if ".tmp" in p.name]
+    assert verify_manifest(out) == []
+    assert compare_manifests(read_manifest(reference_run), read_manifest(out), **SAME) == []
+
+
+@pytest.mark.slow
+def test_rerun_with_fewer_frames_leaves_no_stale_frames(reference_run, tmp_path):
+    """render.max_frames 4 -> 2 into the same output_dir: 2 frames per modality, as render.json says."""
+    out = tmp_path / "out"
+    shutil.copytree(reference_run, out)
+    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "run", *SMALL_RUN, "render.max_frames=2",
+                        f"output_dir={out}", "--until", UNTIL], cwd=REPO, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    seq = out / "patient_000" / "sequence_000"
+    for d in ("rgb", "depth", "optical_flow"):
+        assert len([p for p in (seq / d).iterdir() if p.name.startswith("frame_")]) == 2, d
+    assert len(json.loads((seq / "metadata" / "render.json").read_text())["frames"]) == 2

@@ -91,8 +91,15 @@ def stage_outputs(outputs: Iterable[str | os.PathLike], manifest: str | os.PathL
         yield
         ok = True
     finally:
-        if not ok:
-            remove_outputs(outs)
-        remove_temp_files(outs)
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        held = {}
+        with contextlib.suppress(ValueError):      # a second Ctrl-C / SIGTERM must not cut the clean-up short
+            held = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            if not ok:
+                remove_outputs(outs)
+            remove_temp_files(outs)
+        finally:
+            for s, h in held.items():
+                signal.signal(s, h)
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
