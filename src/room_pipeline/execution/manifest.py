@@ -80,7 +80,7 @@ def _files(root: Path) -> list[Path]:
         dirnames.sort()
         for name in filenames:
             p = Path(dirpath) / name
-            if p.is_file() and p != root / MANIFEST_NAME and not is_temp(name):   # a writer's temp file is no data
+            if p.is_file() and p != root / MANIFEST_NAME:
                 found.append(p)
     return sorted(found, key=lambda p: p.relative_to(root).as_posix())
 
@@ -111,7 +111,7 @@ def build_manifest(root: str | os.PathLike, config: Mapping[str, Any] | None,
     if not root.is_dir():
         raise InputError(f"manifest: {root} is not a folder")
     files = [{"path": p.relative_to(root).as_posix(), "sha256": sha256_file(p), "size": p.stat().st_size}
-             for p in _files(root)]
+             for p in _files(root) if not is_temp(p.name)]       # a writer's temporary file is not data
     doc = {"format": FORMAT, "files": files, "config": _plain(config or {}),
            "versions": library_versions(), "platform": platform_info()}
     if extra:
