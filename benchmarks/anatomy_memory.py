@@ -62,9 +62,9 @@ def main() -> None:
     (RESULTS / f"{name}.json").write_text(json.dumps(
         {"mask": str(mask.relative_to(ROOT.parent)) if mask.is_relative_to(ROOT.parent) else str(mask),
          "rows": rows, "run_wall_s": round(wall, 2), "run_cpu_s": round(cpu, 2), "load_average": round(load, 2),
-         "command": "python benchmarks/anatomy_memory.py"}, indent=2) + "\n")
+         "command": " ".join(["python benchmarks/anatomy_memory.py", *sys.argv[1:]])}, indent=2) + "\n")
     (RESULTS / f"{name}.md").write_text(
-        f"# Anatomy stages on a real mask ({mask.name})\n\n`python benchmarks/anatomy_memory.py`; each stage in "
+        f"# Anatomy stages on a real mask ({mask.name})\n\n`python benchmarks/anatomy_memory.py {' '.join(sys.argv[1:])}`; each stage in "
         "its own process; peak RSS of that process.\n\n" + text + "\n")
 
 
