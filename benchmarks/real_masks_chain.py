@@ -43,7 +43,7 @@ def run_one(name: str, mask: Path, start: Path | None) -> dict:
         p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         row["exit"] = p.returncode
         errs = [ln for ln in p.stderr.splitlines() if ln.startswith("room: error")]
-        row["error"] = errs[-1] if errs else ("" if p.returncode == 0 else p.stderr.strip().splitlines()[-1:])
+        row["error"] = " | ".join(errs) if errs else ("" if p.returncode == 0 else p.stderr.strip().splitlines()[-1:])
         mdir = Path(tmp) / "real" / "metrics"
         for st in STAGES:
             f = mdir / f"{st}.json"
