@@ -315,3 +315,32 @@ def test_real_masks(parts):
     zmax = crop.index_to_world(np.argwhere(crop.data > 0).astype(float))[:, 2].max()
     assert g.root.points[0][2] > zmax - 15 * MM
     assert g.root.mean_radius > np.median([b.mean_radius for b in g.branches])
+
+
+def _arch_mask(island: bool = False, h: float = 0.8) -> Volume:
+    """A 6 mm radius tube bent into an arch (its widest, most superior point is mid-tube, not an end)."""
+    x = np.arange(-40, 40.01, h)
+    y = np.arange(-12, 12.01, h)
+    z = np.arange(-12, 16.01, h)
+    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
+    xc = np.clip(X, -30, 30)
+    zc = 6 * np.cos(np.pi * xc / 60)
+    m = (X - xc) ** 2 + Y ** 2 + (Z - zc) ** 2 <= 6 ** 2
+    if island:  # a small disconnected blob, wider than nothing but above everything
+        m |= (X - 35) ** 2 + Y ** 2 + (Z - 13) ** 2 <= 2.0 ** 2
+    aff = np.diag([h * MM] * 3 + [1.0])
+    aff[:3, 3] = [x[0] * MM, y[0] * MM, z[0] * MM]
+    return Volume(m.astype(np.uint8), aff)
+
+
+@pytest.mark.parametrize("island", [False, True])
+def test_root_is_a_free_end_when_the_widest_top_point_is_mid_tube(island):
+    """Issue #18 item 2: the old root (most superior wide point, mid-arch) gave a zero-length root branch."""
+    res = extract_medial_axis(compute_sdf(_arch_mask(island), SdfParams()), MedialAxisParams())
+    g = res.graph
+    assert res.report["root_reselected"] is True
+    assert g.root.length > 50 * MM  # the whole arch, from one free end
+    assert abs(abs(g.root.points[0][0]) - 30 * MM) < 4 * MM  # starts at an end of the tube
+    if island:
+        assert res.report["dropped_components"] >= 1
+

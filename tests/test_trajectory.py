@@ -263,8 +263,11 @@ def test_start_offset_and_kappa_override():
     graph = from_airway_tree(tree, 1e-3)
     tr = plan_path(graph, 1, tree, TrajectoryParams(start_offset_mm=20.0))
     np.testing.assert_allclose(tr.positions[0], [0, 0, 0.04], atol=1e-12)
-    with pytest.raises(ConfigError, match="start_offset_mm"):
-        plan_path(graph, 1, tree, TrajectoryParams(start_offset_mm=80.0))
+    assert tr.start["kind"] == "root" and tr.start["note"] == ""
+    # a trachea shorter than twice the offset (cut just above the carina): start halfway down it, say so
+    tr = plan_path(graph, 1, tree, TrajectoryParams(start_offset_mm=80.0))
+    np.testing.assert_allclose(tr.positions[0], [0, 0, 0.06 - 0.5 * graph.root.length], atol=1e-9)
+    assert "clipped" in tr.start["note"] and tr.start["offset_mm"] == pytest.approx(graph.root.length / 1e-3 / 2)
     tr = plan_path(graph, 1, tree, TrajectoryParams(kappa_max=80.0))
     check_trajectory(tr, kmax=80.0)
     assert tr.kappa_max == 80.0
@@ -367,3 +370,55 @@ def test_route_ends_where_the_lumen_is_narrower_than_the_scope():
     # every pose lies inside the wide capsules: the narrow one is not entered
     wide = AirwayTree([b for b in tree.branches if b.radius >= 3e-3])
     assert np.all(wide.sdf(tr.positions)[0] < 0)
+
+
+def test_user_start_pose_is_the_route_start(tmp_path):
+    """Issue #18 item 2: a Med-MPD style start pose (4x4, mm, world frame) starts the route."""
+    from room_pipeline.planning.trajectory import read_start_pose
+
+    tree = chain_tree([(0, (0.4, 0, -1), 0.03, 5e-3), (0, (-0.4, 0, -1), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    T = np.eye(4)
+    T[:3, 3] = [0.5, -0.3, 45.0]  # mm, inside the trachea (root runs from z = 60 mm down to 0)
+    f = tmp_path / "start1.txt"
+    np.savetxt(f, T)
+    pose = read_start_pose(f)
+    np.testing.assert_allclose(pose[:3, 3], [0.5e-3, -0.3e-3, 0.045])
+    tr = plan_path(graph, 1, tree, TrajectoryParams(start_offset_mm=10.0), start=pose)
+    check_trajectory(tr, lambda p: tree.sdf(p)[0])
+    np.testing.assert_allclose(tr.positions[0], [0, 0, 0.045], atol=1e-9)  # nearest centreline point
+    assert tr.start["kind"] == "user_pose" and tr.start["branch_id"] == 0
+    # a start in the sibling branch is not on the way to branch 1; one outside the airway is not in the lumen
+    sib = graph.branch(2).points[len(graph.branch(2).points) // 2]
+    with pytest.raises(InputError, match="not on the route"):
+        plan_path(graph, 1, tree, TrajectoryParams(), start=sib)
+    with pytest.raises(InputError, match="outside the airway lumen"):
+        plan_path(graph, 1, tree, TrajectoryParams(), start=[0.03, 0.0, 0.045])
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1 2 3\n")
+    with pytest.raises(InputError, match="4x4"):
+        read_start_pose(bad)
+
+
+def test_target_outside_lumen_says_how_far_and_why():
+    """Issue #18 item 3: a nodule in the parenchyma: the route ends at the nearest airway point, and the
+    metadata give the distance from the last pose to the target and the reason."""
+    tree = chain_tree([(0, (0.4, 0, -1), 0.03, 5e-3), (0, (-0.4, 0, -1), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    end = graph.branch(1).points[-1]
+    target = end + np.array([0.02, 0.0, 0.0])  # 20 mm lateral of the branch end, 15 mm outside its lumen
+    with pytest.raises(InputError, match="outside the airway tree"):
+        plan_path(graph, target, tree, TrajectoryParams())
+    tr = plan_path(graph, target, tree, TrajectoryParams(unreachable="nearest"))
+    check_trajectory(tr, lambda p: tree.sdf(p)[0])
+    t = tr.target
+    assert not t.reached and t.stop_reason == "target_outside_lumen"
+    assert t.stop_distance == pytest.approx(np.linalg.norm(tr.positions[-1] - target))
+    assert 0.015 < t.stop_distance < 0.03
+    d = tr.to_dict()["target"]
+    assert d["stop_reason"] == "target_outside_lumen" and d["stop_distance"] == t.stop_distance
+    # narrow lumen: the scope stops before it and says so
+    tr = plan_path(graph, 1, tree, TrajectoryParams(unreachable="nearest", min_lumen_radius_mm=6.0))
+    assert tr.target.stop_reason == "lumen_narrower_than_scope" and tr.target.stop_distance > 0.01
+    tr = plan_path(graph, 1, tree, TrajectoryParams())
+    assert tr.target.reached and tr.target.stop_reason == "reached" and tr.target.stop_distance < 1e-6

@@ -379,9 +379,13 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     G, rep["n_bridges"] = _bridge_components(G, pts, field, voxel)
     ncomp, comp = csgraph.connected_components(G, directed=False)
 
-    # root: most superior point of the largest-radius part
-    big = rad >= params.root_radius_fraction * rad.max()
-    imax = int(np.argmax(rad))
+    # root: most superior point of the largest-radius part of the main component (islands never hold it)
+    if M == 0:
+        raise InputError("medial axis: no medial point inside the lumen (no trachea-like root)")
+    main = comp == int(np.argmax(np.bincount(comp, weights=rad ** 2)))
+    rmain = float(rad[main].max())
+    big = main & (rad >= params.root_radius_fraction * rmain)
+    imax = int(np.flatnonzero(main)[np.argmax(rad[main])])
     sub = G[big][:, big]
     _, subcomp = csgraph.connected_components(sub, directed=False)
     bidx = np.flatnonzero(big)
@@ -398,29 +402,49 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         log.warning("medial axis: dropped %d component(s) not connected to the trachea (%d medial cluster points, "
                     "largest %d)", dropped_comps, dropped_pts, int(np.sort(sizes)[-2]) if ncomp > 1 else 0)
 
-    dist, pred = csgraph.dijkstra(G, directed=False, indices=root, return_predecessors=True)
-    valid = np.isfinite(dist)
-    in_skel = np.zeros(M, dtype=bool)
-    in_skel[root] = True
-    valid[root] = False
-    skel_parent = np.full(M, -1, dtype=np.int64)
-    n_paths = 0
-    while valid.any():
-        i = int(np.argmax(np.where(valid, dist, -np.inf)))
-        path = []
-        j = i
-        while not in_skel[j]:
-            path.append(j)
-            j = int(pred[j])
-        path_arr = np.array(path, dtype=np.int64)
-        skel_parent[path_arr] = np.append(path_arr[1:], j)
-        in_skel[path_arr] = True
-        valid[path_arr] = False
-        n_paths += 1
-        radii = params.invalidation_scale * rad[path_arr] + params.invalidation_voxels * voxel
-        for lst in kd.query_ball_point(pts[path_arr], radii):
-            valid[lst] = False
+    def skeleton(root: int):
+        dist, pred = csgraph.dijkstra(G, directed=False, indices=root, return_predecessors=True)
+        valid = np.isfinite(dist)
+        in_skel = np.zeros(M, dtype=bool)
+        in_skel[root] = True
+        valid[root] = False
+        skel_parent = np.full(M, -1, dtype=np.int64)
+        n_paths = 0
+        while valid.any():
+            i = int(np.argmax(np.where(valid, dist, -np.inf)))
+            path = []
+            j = i
+            while not in_skel[j]:
+                path.append(j)
+                j = int(pred[j])
+            path_arr = np.array(path, dtype=np.int64)
+            skel_parent[path_arr] = np.append(path_arr[1:], j)
+            in_skel[path_arr] = True
+            valid[path_arr] = False
+            n_paths += 1
+            radii = params.invalidation_scale * rad[path_arr] + params.invalidation_voxels * voxel
+            for lst in kd.query_ball_point(pts[path_arr], radii):
+                valid[lst] = False
+        return in_skel, skel_parent, n_paths
+
+    in_skel, skel_parent, n_paths = skeleton(root)
+    # The root must be an end of the skeleton (the trachea's free end).  When the most superior wide point is
+    # not one (trachea cut just above the carina, flattened or touching the border: the skeleton leaves it in
+    # two directions), the route would start with a zero-length root branch: re-root at the most superior
+    # skeleton end that is still wide (radius >= half the candidate's), else at the most superior end.
+    n_children = np.bincount(skel_parent[skel_parent >= 0], minlength=M)
+    rep["root_reselected"] = False
+    if n_children[root] >= 2:
+        ends = np.flatnonzero(in_skel & (n_children == 0))
+        wide = ends[rad[ends] >= 0.5 * rad[root]]
+        cand = wide if len(wide) else ends
+        if len(cand):
+            root = int(cand[np.argmax(pts[cand, 2])])
+            in_skel, skel_parent, n_paths = skeleton(root)
+            rep["root_reselected"] = True
     rep["n_paths"] = n_paths
+    rep["root_point_m"] = pts[root].round(6).tolist()
+    rep["root_radius_mm"] = round(float(rad[root]) / 1e-3, 3)
 
     # ------------------------------------------------ skeleton -> branches (lists of node ids)
     nodes = np.flatnonzero(in_skel)
@@ -543,6 +567,10 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         r = np.maximum(field.radius(field.to_index(q)), 0.0)
         out.append(GraphBranch(ids[bid], -1 if b["parent"] < 0 else ids[b["parent"]], gen[bid], q, r))
     graph = CentrelineGraph(out)
+    if graph.root.length <= 0:
+        raise InputError("medial axis: no trachea-like root: the widest part of the airway tree has no free end "
+                         f"(root at {', '.join(f'{v / 1e-3:.1f}' for v in pts[root])} mm, radius "
+                         f"{rad[root] / 1e-3:.1f} mm); is the mask an airway tree?")
 
     # ------------------------------------------------ loops: contacts the tree does not explain
     rep["loops_broken"] = _count_loops(graph, pts[in_root], pairs, in_root, voxel, params)

@@ -464,6 +464,7 @@ def _segment_region_growing(ct: Volume, p: SegmentParams) -> SegmentResult:
 
     out = np.zeros(S.shape, dtype=np.uint8)
     out[box] = mask
+    _check_tubular(out, ct, seed)
     n = int(np.count_nonzero(out))
     report = {
         "method": "region_growing",
@@ -482,6 +483,27 @@ def _segment_region_growing(ct: Volume, p: SegmentParams) -> SegmentResult:
         "params": dataclasses.asdict(p),
     }
     return SegmentResult(Volume(out, ct.affine.copy()), seed, t_safe, report)
+
+
+#: a segmented airway closed above (not cut by the top of the scan) must be at least this tall (mm): a whole
+#: airway tree from the larynx is >= 100 mm; a closed gas pocket (stomach, bowel, oesophagus) of trachea width is not
+_MIN_CLOSED_AIRWAY_HEIGHT_MM = 40.0
+
+
+def _check_tubular(out: np.ndarray, ct: Volume, seed) -> None:
+    """InputError when the grown region is a closed air pocket rather than a trachea and its tree."""
+    ax, sgn = ct.superior_axis()
+    sp = _spacing_mm(ct)
+    along = np.nonzero(out.any(axis=tuple(a for a in range(3) if a != ax)))[0]
+    n = out.shape[ax]
+    gap = (n - 1 - along[-1]) if sgn > 0 else along[0]  # slices between the region's top and the scan's top
+    height = (along[-1] - along[0] + 1) * sp[ax]
+    if gap > 1 and height < _MIN_CLOSED_AIRWAY_HEIGHT_MM:
+        w = ", ".join(f"{v / MM:.0f}" for v in ct.index_to_world(np.array(seed, dtype=float)[None])[0])
+        raise InputError(f"no airway tree: the trachea-like air region at ({w}) mm is closed above, "
+                         f"{gap * sp[ax]:.0f} mm below the top of the scan, and only {height:.0f} mm tall "
+                         f"(< {_MIN_CLOSED_AIRWAY_HEIGHT_MM:g} mm): a gas pocket, not a trachea; the scan does "
+                         "not show the airways")
 
 
 # ------------------------------------------------------------------ TotalSegmentator

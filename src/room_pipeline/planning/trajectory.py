@@ -298,6 +298,10 @@ class TargetInfo:
         distance: requested point to the centreline point it maps to, metres.
         reached: False when ``unreachable: nearest`` replaced the target by the nearest reachable one.
         note: why, when not reached.
+        stop_distance: straight-line distance from the last camera position to ``requested``, metres.
+        stop_reason: 'reached' | 'target_outside_lumen' (a point target off the airways: the route ends at the
+            airway point nearest it) | 'lumen_narrower_than_scope' (min_lumen_radius_mm) | 'curvature_limit'
+            (kappa_max) | 'clearance' (the wall margin cannot be kept); the first cause met along the route.
     """
 
     kind: str
@@ -307,11 +311,14 @@ class TargetInfo:
     distance: float = 0.0
     reached: bool = True
     note: str = ""
+    stop_distance: float = 0.0
+    stop_reason: str = "reached"
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, "branch_id": int(self.branch_id),
                 "point": np.round(self.point, 9).tolist(), "requested": np.round(self.requested, 9).tolist(),
-                "distance": float(self.distance), "reached": bool(self.reached), "note": self.note}
+                "distance": float(self.distance), "reached": bool(self.reached), "note": self.note,
+                "stop_distance": float(self.stop_distance), "stop_reason": self.stop_reason}
 
 
 def _graph_segments(graph: CentrelineGraph):
@@ -424,11 +431,9 @@ def _route(graph: CentrelineGraph, branch_id: int, s_in_branch: float, start_off
     keep = np.concatenate([[True], np.diff(S) > 1e-12])
     P, R, Bi, S = P[keep], R[keep], Bi[keep], S[keep]
     if start_offset > 0:
-        if start_offset >= graph.root.length:
-            raise ConfigError(f"trajectory.start_offset_mm = {start_offset / MM:g} mm is not shorter than the "
-                              f"root branch ({graph.root.length / MM:.1f} mm)")
         if start_offset >= S[-1]:
-            raise InputError(f"target lies before the start ({start_offset / MM:g} mm along the root branch)")
+            raise InputError(f"target lies before the start ({start_offset / MM:.1f} mm along the route, which is "
+                             f"{S[-1] / MM:.1f} mm long)")
         P2, R2, S2 = _cut(P, R, S, start_offset, S[-1])
         B2 = Bi[np.clip(np.searchsorted(S, S2, side="right") - 1, 0, len(S) - 1)]
         P, R, Bi, S = P2, R2, B2, S2 - start_offset
@@ -755,6 +760,7 @@ class Trajectory:
     max_curvature: float
     route_branches: list
     params: dict = dataclasses.field(default_factory=dict)
+    start: dict = dataclasses.field(default_factory=dict)
 
     @property
     def positions(self) -> np.ndarray:
@@ -792,6 +798,7 @@ class Trajectory:
                            f"image up (camera -y) nearest world {self.params.get('image_up', 'anterior')} at the start",
             "rate_hz": float(self.rate_hz),
             "target": self.target.to_dict(),
+            "start": self.start,
             "summary": self.summary(),
             "params": self.params,
             "frames": [{"index": i, "timestamp": float(self.timestamps[i]),
@@ -862,6 +869,7 @@ def _resolve_target(graph: CentrelineGraph, target, params: TrajectoryParams) ->
     info._s = s  # type: ignore[attr-defined]
     if d > r + params.target_tolerance_mm * MM:
         info.reached = False
+        info.stop_reason = "target_outside_lumen"
         info.note = (f"target {(d - r) / MM:.1f} mm outside the lumen (tolerance {params.target_tolerance_mm:g} mm): "
                      "nearest airway centreline point used")
     return info
@@ -883,22 +891,79 @@ def _fail_message(res: SmoothResult, route: _Route, kappa_max: float) -> str:
             f"{res.clearance[i] / MM:.2f} mm) near branch {b}, {s / MM:.1f} mm along the route")
 
 
+def read_start_pose(path: str | os.PathLike) -> np.ndarray:
+    """A Med-MPD ``start*.txt`` (4x4 pose, translation in mm, world frame of the mask) -> 4x4 with metres."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise InputError(f"start pose file not found: {path}")
+    try:
+        T = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise InputError(f"{path}: start pose must be a 4x4 matrix of numbers (mm): {exc}") from exc
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(f"{path}: start pose must be a finite 4x4 matrix, got shape {T.shape}")
+    T = T.copy()
+    T[:3, 3] *= MM
+    return T
+
+
+def _start(graph: CentrelineGraph, info: TargetInfo, params: TrajectoryParams, start) -> tuple[float, dict]:
+    """Arclength along the route (from the root's first point) where the path starts, and its description."""
+    chain = graph.path_to(info.branch_id)
+    if start is None:
+        off = params.start_offset_mm * MM
+        doc = {"kind": "root", "offset_mm": round(off / MM, 6), "note": ""}
+        if off > 0 and off >= 0.5 * graph.root.length:
+            # a trachea cut just above the carina: start halfway down what there is
+            clipped = 0.5 * graph.root.length
+            doc.update(offset_mm=round(clipped / MM, 6),
+                       note=f"start_offset_mm {params.start_offset_mm:g} mm clipped to {clipped / MM:.1f} mm: the "
+                            f"root branch (trachea) is only {graph.root.length / MM:.1f} mm long")
+            off = clipped
+        return off, doc
+    T = np.asarray(start, dtype=np.float64)
+    p = T[:3, 3] if T.shape == (4, 4) else T.reshape(3)
+    tol = params.target_tolerance_mm * MM
+    bid, s_b, c, d = map_target_point(graph, p, tol, nearest=True)
+    b = graph.branch(bid)
+    sb = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(b.points, axis=0), axis=1))])
+    r = float(np.interp(s_b, sb, b.radius))
+    where = ", ".join(f"{v / MM:.1f}" for v in p)
+    if d > r + tol:
+        raise InputError(f"start pose ({where}) mm is {(d - r) / MM:.1f} mm outside the airway lumen "
+                         f"(nearest: branch {bid})")
+    ids = [x.id for x in chain]
+    if bid not in ids:
+        raise InputError(f"start pose ({where}) mm lies in branch {bid}, which is not on the route from the trachea "
+                         f"to target branch {info.branch_id} (branches {ids})")
+    off = sum(x.length for x in chain[:ids.index(bid)]) + s_b
+    return off, {"kind": "user_pose", "position": np.round(p, 9).tolist(), "branch_id": int(bid),
+                 "offset_mm": round(off / MM, 6), "distance_to_centreline_mm": round(d / MM, 4),
+                 "note": "route starts at the centreline point nearest the given start pose; its orientation "
+                         "is not used (the view follows the route)"}
+
+
 def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams | None = None,
-              geometry: ScopeGeometry | None = None) -> Trajectory:
+              geometry: ScopeGeometry | None = None, start=None) -> Trajectory:
     """Plan one trajectory from the trachea entry to ``target`` (a branch id or an (3,) point in metres).
 
     ``sdf_fn``: ``(N, 3) metres -> (N,) metres`` (negative in the lumen), or a
     :class:`Volume` / :class:`AirwayTree` (see :func:`as_sdf_fn`).  Raises
     :class:`InputError` for an unreachable target unless ``params.unreachable``
-    is 'nearest' (module docstring, step 4).
+    is 'nearest' (module docstring, step 4).  ``start``: a user start pose (4x4, metres, world) or
+    position (3,); the route starts at the centreline point nearest it, which must lie on the way from the
+    trachea to the target.  Without it the route starts ``start_offset_mm`` down the root branch (clipped to
+    half that branch when the trachea is shorter).
     """
     params = params or TrajectoryParams()
     fn = as_sdf_fn(sdf_fn)
     kmax = _kappa_max(params, geometry)
     info = _resolve_target(graph, target, params)
-    full = _route(graph, info.branch_id, _branch_arclength(graph, info), params.start_offset_mm * MM)
+    offset, start_doc = _start(graph, info, params, start)
+    full = _route(graph, info.branch_id, _branch_arclength(graph, info), offset)
     route = full
     first_fail = ""
+    reason = ""
     h_min = 2 * params.smoothing_step_mm * MM
     narrow = np.nonzero(full.radius < params.min_lumen_radius_mm * MM)[0]
     if len(narrow):
@@ -908,6 +973,7 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
         if params.unreachable == "error":
             raise InputError(f"target branch {info.branch_id} is unreachable: {msg}")
         first_fail = msg
+        reason = "lumen_narrower_than_scope"
         s_new = s_narrow - params.nearest_backoff_mm * MM
         if s_new < h_min:
             raise InputError(f"target branch {info.branch_id}: no reachable point on its route ({msg})")
@@ -920,12 +986,15 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
                 traj = built
                 break
             s_fail, msg = built
+            why = "curvature_limit" if "curvature" in msg else "clearance"
         else:
             msg = _fail_message(res, route, kmax)
+            why = "clearance" if res.ok_curvature else "curvature_limit"
             s_fail = float(res.route_s[max(res.fail_index, 0)])
         if params.unreachable == "error":
             raise InputError(f"target branch {info.branch_id} is unreachable: {msg}")
         first_fail = first_fail or msg
+        reason = reason or why
         s_new = min(s_fail, route.length) - params.nearest_backoff_mm * MM
         if s_new < h_min:
             raise InputError(f"target branch {info.branch_id}: no reachable point on its route ({first_fail})")
@@ -937,7 +1006,11 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
                      + first_fail) + ("; " + info.note if info.note else "")
         info.point = end.copy()
         info.branch_id = int(route.branch[-1])
+        info.stop_reason = reason or info.stop_reason
         traj.target = info
+    info.stop_distance = float(np.linalg.norm(traj.positions[-1] - info.requested))
+    traj.target = info
+    traj.start = start_doc
     return traj
 
 

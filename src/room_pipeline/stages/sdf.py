@@ -21,8 +21,9 @@ def run(cfg: DictConfig, patient: str) -> dict:
     paths = patient_paths(cfg, patient)
     with StageTimer() as timer:
         mask = read_volume(paths.airway_mask)
-        sdf = compute_sdf(mask.with_data(np.asarray(mask.data) > 0), params)
-    inside = np.asarray(mask.data) > 0
+        mask = mask.with_data(np.asarray(mask.data) > 0)  # drop the file's dtype copy: memory
+        sdf = compute_sdf(mask, params)
+    inside = np.asarray(mask.data)
     s = np.asarray(sdf.data)
     # sign agreement with the mask at voxel centres (sub-voxel surfaces may flip boundary voxels)
     agree = float(np.mean((s[inside] < 0))) if inside.any() else 0.0

@@ -13,7 +13,8 @@ from ..config.compose import section
 from ..errors import ConfigError
 from ..io.atomic import write_json, write_text
 from ..io.volume import read_nifti_sdf
-from ..planning.trajectory import TrajectoryParams, plan_path, select_targets, timestamps_dict, volume_sdf_fn
+from ..planning.trajectory import (TrajectoryParams, plan_path, read_start_pose, select_targets, timestamps_dict,
+                                   volume_sdf_fn)
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 
 
@@ -47,7 +48,11 @@ def run(cfg: DictConfig, key: str) -> dict:
         if index >= len(targets):
             raise ConfigError(f"{sequence} needs target #{index + 1} but trajectory.targets='{params.targets}' "
                               f"yields {len(targets)} for {patient}")
-        traj = plan_path(graph, targets[index], volume_sdf_fn(sdf), params)
+        # optional user start pose of the patient entry (conf/patients/*: start_pose: a Med-MPD start*.txt, 4x4, mm)
+        entry = (cfg.get("patients") or {}).get(patient) or {}
+        start_file = entry.get("start_pose") if hasattr(entry, "get") else None
+        start = read_start_pose(start_file) if start_file else None
+        traj = plan_path(graph, targets[index], volume_sdf_fn(sdf), params, start=start)
     out = paths.sequence_metadata(sequence)
     doc = traj.to_dict()
     doc["metadata"] = metadata("trajectory", patient, cfg, ("trajectory",), sequence=sequence,
@@ -63,6 +68,7 @@ def run(cfg: DictConfig, key: str) -> dict:
                "min_clearance_mm": round(summary["min_clearance_m"] * 1e3, 4),
                "min_clearance_minus_margin_mm": round(summary["min_clearance_minus_margin_m"] * 1e3, 4),
                "target_reached": bool(traj.target.reached),
+               "target_stop_distance_mm": round(traj.target.stop_distance * 1e3, 3),
                "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
     write_metrics(paths, f"trajectory_{sequence}", metrics)
     return metrics
