@@ -50,7 +50,14 @@ Airway
     (default 0): Bullet's own default (1 mm) inflates every triangle by the margin, i.e. the
     lumen was 1 mm narrower than the mesh (a capsule rests 1 mm above a triangle floor), and
     the margin also enlarges every triangle query, doubling the step time deep in a narrow
-    branch (benchmarks/results/simulation.md).  With ``crop_mesh`` only the triangles whose
+    branch (benchmarks/results/simulation.md).  Only the wall near the route is loaded
+    (``collision_corridor_mm``): every triangle whose bounding sphere reaches within that
+    distance of the planned path, extended back by the bending segment and the passive shaft;
+    the run records how far inside the corridor the scope's surface stayed
+    (``corridor_margin_mm``) and is redone with the corridor doubled if that went negative
+    (three times, then the whole mesh).  The wall goes to Bullet in bodies of at most
+    ``max_body_faces`` triangles (cut along the route), so no mesh size reaches
+    ``createCollisionShape``'s limit (131,708 faces passed, 200,914 failed).  With ``crop_mesh`` only the triangles whose
     centroid is within ``crop_radius_mm`` of the scope are loaded, and the crop is rebuilt
     when any scope point has moved more than ``crop_rebuild_mm`` since the last build.
 
@@ -131,6 +138,8 @@ class SimParams:
     crop_mesh: bool = False                 # load only the triangles near the scope (no gain measured)
     crop_radius_mm: float = 12.0
     crop_rebuild_mm: float = 3.0
+    collision_corridor_mm: float = 15.0     # wall = triangles within this of the route (0: whole mesh); see _simulate
+    max_body_faces: int = 100_000           # faces per Bullet wall body (createCollisionShape: 131,708 ok, 200,914 failed)
     settle_time_s: float = 0.3              # settling before the first frame
     ik_direction_weight_mm: float | None = None  # weight of the view direction in IK (null: l)
     controller_iterations: int = 2
@@ -141,7 +150,7 @@ class SimParams:
 
     def __post_init__(self) -> None:
         ints = ("seed", "solver_iterations", "n_links", "passive_shaft_links", "controller_iterations",
-                "mass_matrix_every", "max_step_halvings")
+                "mass_matrix_every", "max_step_halvings", "max_body_faces")
         for name in ints:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or float(v) != int(v):
@@ -173,11 +182,11 @@ class SimParams:
                     "joint_stiffness", "joint_damping", "contact_stiffness", "passive_shaft_length_mm",
                     "passive_shaft_links", "shaft_bending_stiffness_nm2", "crop_radius_mm", "crop_rebuild_mm",
                     "controller_iterations", "mass_matrix_every", "max_rate_q1_mm_s", "max_rate_q2_deg_s",
-                    "max_rate_q3_mm_s", "unstable_penetration_mm")
+                    "max_rate_q3_mm_s", "unstable_penetration_mm", "max_body_faces")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"simulate.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("max_step_halvings", "wall_margin_mm", "inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
+        for name in ("collision_corridor_mm", "max_step_halvings", "wall_margin_mm", "inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
                      "delay_max_s", "gain_q1", "gain_q2", "settle_time_s"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"simulate.{name} must be >= 0, got {getattr(self, name)}")
@@ -340,6 +349,46 @@ def crop_faces(mesh: Mesh, points: np.ndarray, radius: float, tree: cKDTree | No
     return idx
 
 
+def split_faces(vertices: np.ndarray, faces: np.ndarray, max_faces: int,
+                order: np.ndarray | None = None) -> list[np.ndarray]:
+    """Face indices cut into consecutive runs of ``order`` of at most ``max_faces`` each, each run sorted.
+
+    ``order`` (a permutation of the faces) defaults to the faces sorted by centroid along the
+    mesh's longest bounding-box axis (stable), so every run is a compact slab of the surface.
+    Equal sizes (ceil(n / ceil(n / max_faces))).  Deterministic.
+    """
+    n = len(faces)
+    if n == 0:
+        return []
+    if n <= max_faces:
+        return [np.arange(n)]
+    if order is None:
+        cen = vertices[faces].mean(axis=1)
+        axis = int(np.argmax(cen.max(axis=0) - cen.min(axis=0)))
+        order = np.argsort(cen[:, axis], kind="stable")
+    order = np.asarray(order, np.int64)
+    k = -(-n // max_faces)
+    size = -(-n // k)
+    return [np.sort(order[i:i + size]) for i in range(0, n, size)]
+
+
+def route_corridor(mesh: Mesh, samples: np.ndarray, radius: float) -> np.ndarray:
+    """The wall near a route: every face whose bounding sphere (about its centroid) reaches within
+    ``radius`` of a route sample point, so no part of a kept face's neighbourhood is lost to a
+    large triangle whose centroid lies farther away.
+
+    ``samples``: (N, 3) points along the route, in order (m).  Returns the face indices ordered
+    by the index of their nearest sample (i.e. along the route; stable, deterministic).
+    """
+    V = mesh.vertices[mesh.faces]
+    cen = V.mean(axis=1)
+    reach = np.linalg.norm(V - cen[:, None], axis=2).max(axis=1)
+    d, j = cKDTree(np.asarray(samples, float).reshape(-1, 3)).query(
+        cen, distance_upper_bound=radius + float(reach.max(initial=0.0)))
+    keep = np.flatnonzero(np.isfinite(d) & (d - reach <= radius))
+    return keep[np.argsort(j[keep], kind="stable")]
+
+
 # --------------------------------------------------------------------------- the PyBullet world
 
 
@@ -367,6 +416,8 @@ class ScopeSim:
         self.wall = -1
         self.wall_shape = -1
         self.wall_faces = 0
+        self.walls: list[int] = []
+        self.max_body_faces = int(params.max_body_faces)
         self._build_scope()
 
     # ---- construction
@@ -440,22 +491,42 @@ class ScopeSim:
             pass
 
     # ---- airway
-    def set_wall(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        """Replace the static airway mesh (concave triangle mesh, two-sided contacts)."""
+    def set_wall(self, vertices: np.ndarray, faces: np.ndarray, order: np.ndarray | None = None) -> None:
+        """Replace the static airway mesh (concave triangle meshes, two-sided contacts).
+
+        Any size: the faces go to Bullet in bodies of at most ``max_body_faces`` each
+        (``createCollisionShape`` fails above ~131k-200k faces, ../shared/DESIGN.md), cut
+        in ``order`` (face indices, e.g. sorted along the route) or, by default, along the
+        mesh's longest extent, so each body is one compact piece of the wall.
+        """
         c = self.cid
-        if self.wall >= 0:
-            p.removeBody(self.wall, physicsClientId=c)
-            self.wall = -1
+        for b in self.walls:
+            p.removeBody(b, physicsClientId=c)
+        self.walls = []
+        self.wall = -1
         self.wall_shape = -1   # (Bullet refuses to remove a shape still referenced; it is freed with the world)
+        faces = np.asarray(faces, np.int64).reshape(-1, 3)
+        vertices = np.asarray(vertices, float)
         self.wall_faces = int(len(faces))
         if len(faces) == 0:
             return
-        self.wall_shape = p.createCollisionShape(p.GEOM_MESH, vertices=np.asarray(vertices, float).tolist(),
-                                                 indices=np.asarray(faces, np.int64).ravel().tolist(),
-                                                 flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
-        self.wall = p.createMultiBody(0.0, self.wall_shape, -1, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
-        p.changeDynamics(self.wall, -1, lateralFriction=1.0, restitution=0.0,
-                         collisionMargin=self.params.wall_margin_mm * 1e-3, physicsClientId=c)
+        for part in split_faces(vertices, faces, self.max_body_faces, order):
+            F = faces[part]
+            used, inv = np.unique(F.ravel(), return_inverse=True)
+            try:
+                shape = p.createCollisionShape(p.GEOM_MESH, vertices=vertices[used].tolist(),
+                                               indices=inv.astype(np.int64).tolist(),
+                                               flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
+            except p.error:
+                shape = -1
+            if shape < 0:
+                raise ConfigError(f"PyBullet refused a wall body of {len(F)} faces "
+                                  f"(simulate.max_body_faces = {self.max_body_faces}); lower it")
+            body = p.createMultiBody(0.0, shape, -1, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
+            p.changeDynamics(body, -1, lateralFriction=1.0, restitution=0.0,
+                             collisionMargin=self.params.wall_margin_mm * 1e-3, physicsClientId=c)
+            self.walls.append(body)
+        self.wall, self.wall_shape = self.walls[0], -1
 
     def add_box(self, half_extents, position) -> int:
         """A static box (contact-law checks); friction 1.0 so the pair's coefficient is the scope's."""
@@ -464,6 +535,7 @@ class ScopeSim:
         b = p.createMultiBody(0.0, shape, -1, list(position), [0.0, 0.0, 0.0, 1.0], physicsClientId=c)
         p.changeDynamics(b, -1, lateralFriction=1.0, restitution=0.0, physicsClientId=c)
         self.wall = b
+        self.walls = [b]
         return b
 
     # ---- state
@@ -559,9 +631,7 @@ class ScopeSim:
 
     def contacts(self) -> tuple[float, float]:
         """(sum of normal forces N, max penetration m) between the scope and the wall."""
-        if self.wall < 0:
-            return 0.0, 0.0
-        cps = p.getContactPoints(self.body, self.wall, physicsClientId=self.cid)
+        cps = [cp for w in self.walls for cp in p.getContactPoints(self.body, w, physicsClientId=self.cid)]
         if not cps:
             return 0.0, 0.0
         f = float(sum(cp[9] for cp in cps))
@@ -732,9 +802,19 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
 
     params = params or SimParams()
     given_up = []
+    widened = []
     with threadpool_limits(limits=1, user_api="blas"):
         for _ in range(params.max_step_halvings + 1):
             res = _simulate(trajectory, mesh, params, geometry)
+            # the scope strayed so far from the route that it may have reached wall left out of the
+            # corridor: redo with the corridor doubled (at most three times, then the whole mesh)
+            while (res.report["mesh"] or {}).get("corridor_margin_mm", 0.0) < 0.0:
+                widened.append({"corridor_mm": params.collision_corridor_mm,
+                                "corridor_margin_mm": res.report["mesh"]["corridor_margin_mm"],
+                                "wall_time_s": res.report["wall_time_s"]})
+                params = dataclasses.replace(params, collision_corridor_mm=(
+                    2.0 * params.collision_corridor_mm if len(widened) < 3 else 0.0))
+                res = _simulate(trajectory, mesh, params, geometry)
             stable = (np.all(np.isfinite(res.tip_poses))
                       and res.report["penetration_mm"]["max"] <= params.unstable_penetration_mm)
             if stable or len(given_up) == params.max_step_halvings:
@@ -743,8 +823,9 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
                              "wall_time_s": res.report["wall_time_s"]})
             params = dataclasses.replace(params, time_step_s=0.5 * params.time_step_s)
     res.report["unstable_runs"] = given_up
-    if given_up:       # the speed of the whole call, retries included
-        res.report["wall_time_s"] += sum(g["wall_time_s"] for g in given_up)
+    res.report["corridor_widened"] = [{k: v for k, v in w.items() if k != "wall_time_s"} for w in widened]
+    if given_up or widened:       # the speed of the whole call, retries included
+        res.report["wall_time_s"] += sum(g["wall_time_s"] for g in given_up + widened)
         res.report["realtime_factor"] = res.report["duration_s"] / res.report["wall_time_s"]
     return res
 
@@ -815,14 +896,30 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
     q_act_now = act(0.0)
     apply(q_act_now)
     sim.reset_joints()
+    # the wall near the route only (see module docstring, Airway): faces within collision_corridor_mm of
+    # the planned path, extended back by the bending segment and the passive shaft (the scope's reach)
+    R = params.collision_corridor_mm * 1e-3
+    use_corridor = mesh is not None and not use_crop and R > 0
+    corridor_tree, dev_max = None, 0.0
     if mesh is not None:
         if use_crop:
             load_wall()
         else:
             t0 = time.perf_counter()
-            sim.set_wall(mesh.vertices, mesh.faces)
+            if use_corridor:
+                step = 1e-3
+                s_lo = float(trajectory.arclength[0]) - geometry.l - Lp - step
+                s_hi = float(trajectory.arclength[-1]) + step
+                samples = np.array([route.frame(s)[:3, 3] for s in np.arange(s_lo, s_hi + 0.5 * step, step)])
+                F = mesh.faces[route_corridor(mesh, samples, R)]
+                corridor_tree = cKDTree(samples)
+                sim.set_wall(mesh.vertices, F, order=np.arange(len(F)))
+                faces_loaded = [len(F)]
+            else:
+                sim.set_wall(mesh.vertices, mesh.faces)
+                faces_loaded = [mesh.n_faces]
             t_build += time.perf_counter() - t0
-            n_builds, faces_loaded = 1, [mesh.n_faces]
+            n_builds = 1
     dt = params.time_step_s
     steps = 0
     n_settle = int(round(params.settle_time_s / dt))
@@ -836,10 +933,13 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
     pen = np.zeros(T)
 
     def record(k: int, t: float) -> None:
+        nonlocal dev_max
         tip[k] = sim.tip_pose()
         q_cmd[k] = signal(t)
         q_act[k] = act(t)
         force[k], pen[k] = sim.contacts()
+        if corridor_tree is not None:
+            dev_max = max(dev_max, float(corridor_tree.query(sim.sample_points())[0].max()))
 
     record(0, 0.0)
     t_now = 0.0
@@ -862,6 +962,7 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         steps += n
         record(k, ts[k])
     wall = time.perf_counter() - t_wall0
+    n_bodies = len(sim.walls)
     sim.close()
 
     err_m = np.linalg.norm(tip[:, :3, 3] - poses[:, :3, 3], axis=1)
@@ -880,7 +981,15 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         "insertion_model": params.insertion_model,
         "mesh": None if mesh is None else {"faces": int(mesh.n_faces), "cropped": bool(use_crop), "builds": n_builds,
                                            "faces_loaded_mean": float(np.mean(faces_loaded)) if faces_loaded else 0.0,
-                                           "build_time_s": t_build},
+                                           "build_time_s": t_build,
+                                           "bodies": n_bodies,
+                                           **({"corridor_mm": params.collision_corridor_mm,
+                                               "corridor_faces": int(faces_loaded[0]),
+                                               # how far inside the corridor the scope's surface stayed: R - (its
+                                               # backbone's max distance from the route samples) - scope radius;
+                                               # < 0: it may have reached a left-out triangle, so simulate() widens
+                                               "corridor_margin_mm": (R - dev_max - sim.radius) * 1e3}
+                                              if use_corridor else {})},
     }
     return SimResult(timestamps=ts.copy(), tip_poses=tip, q_cmd=q_cmd, q_act=q_act, contact_force_n=force,
                      penetration_m=pen, tracking_error_m=err_m, tracking_error_rad=err_rad, report=report)

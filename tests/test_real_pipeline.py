@@ -1,0 +1,186 @@
+"""Every shared real airway tree through every stage (issue #18 item 1), each stage's output checked.
+
+Med-MPD patients 1-3, the AirQuant demo and the three public trees (axes_fixed) in ../shared/data run
+through ``room run patients=shared_masks --patient ID`` from segment to evaluate_pose, with a short
+sequence (30 rendered frames, ray caster at 192x192, the physics depth baseline only: the CNN rows need
+the phantom's training stage).  Each mask runs once per test session (a session-scoped fixture, one mask at
+a time: the sdf stage of a 512x512x700 tree peaks near 9 GB until the banded SDF lands); the tests then
+read its outputs.  A stage that fails makes every test of that stage and after it fail with the stage's
+own error line.  Skipped, with the reason, when ../shared/data is absent.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.ndimage import map_coordinates
+
+from .conftest import REPO, SHARED_DATA
+
+pytestmark = [pytest.mark.slow, pytest.mark.shared]
+
+MASKS = ["medmpd_1", "medmpd_2", "medmpd_3", "airquant_demo", "atm_001", "case073", "case091"]
+FRAMES = 30
+OVERRIDES = ["patients=shared_masks", f"render.max_frames={FRAMES}", "render.width=192", "render.height=192",
+             "depth.methods=[physics]"]
+SEQ = "sequence_000"
+
+
+class Run:
+    """One mask's pipeline run: output folder, exit status and log; ``require(stage)`` fails clearly."""
+
+    def __init__(self, patient: str, root: Path, rc: int, log: str) -> None:
+        self.patient, self.root, self.rc, self.log = patient, root, rc, log
+        self.dir = root / patient
+
+    def done(self, stage: str) -> bool:
+        return (self.dir / "metrics" / (f"{stage}_{SEQ}.json" if stage in SEQ_STAGES else f"{stage}.json")).is_file()
+
+    def require(self, stage: str) -> dict:
+        if not self.done(stage):
+            err = [ln for ln in self.log.splitlines() if "error" in ln.lower() or "Error" in ln][-3:]
+            pytest.fail(f"{self.patient}: stage {stage} has no output (room run exit {self.rc}): "
+                        + (" | ".join(err) or self.log[-1500:]), pytrace=False)
+        return self.metrics(stage)
+
+    def metrics(self, stage: str) -> dict:
+        name = f"{stage}_{SEQ}.json" if stage in SEQ_STAGES else f"{stage}.json"
+        return json.loads((self.dir / "metrics" / name).read_text())
+
+    def json(self, *parts: str) -> dict:
+        return json.loads(self.dir.joinpath(*parts).read_text())
+
+
+SEQ_STAGES = {"trajectory", "simulate", "render", "noise", "evaluate_depth", "evaluate_pose"}
+
+
+def _mask_input(patient: str) -> Path:
+    import yaml
+    doc = yaml.safe_load((REPO / "conf" / "patients" / "shared_masks.yaml").read_text())
+    return (REPO / doc["patients"][patient]["input"]).resolve()
+
+
+@pytest.fixture(scope="session", params=MASKS)
+def run(request, tmp_path_factory) -> Run:
+    patient = request.param
+    src = _mask_input(patient)
+    if not src.is_file():
+        pytest.skip(f"shared sample data not available: {src} (SHARED_DATA {SHARED_DATA})")
+    out = tmp_path_factory.mktemp(f"real_{patient}")
+    env = dict(os.environ)
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    env.pop("ROOM_CONF_DIR", None)
+    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "run", "--patient", patient, "--until",
+                        "evaluate_pose", *OVERRIDES, f"output_dir={out}"],
+                       cwd=REPO, capture_output=True, text=True, env=env)
+    log = r.stdout + r.stderr
+    (out / "room_run.log").write_text(log)
+    return Run(patient, out, r.returncode, log)
+
+
+def _sdf_at(run: Run, pts: np.ndarray) -> np.ndarray:
+    """The stage's SDF (mm) trilinearly at world points (m); outside the grid +inf."""
+    from room_pipeline.io.volume import read_volume
+    vol = read_volume(run.dir / "anatomy" / "sdf.nii.gz")
+    ijk = vol.world_to_index(pts)
+    return map_coordinates(np.asarray(vol.data, np.float32), ijk.T, order=1, mode="constant", cval=np.inf)
+
+
+# --------------------------------------------------------------------------- anatomy
+
+
+def test_segment_lumen_volume_in_human_range(run):
+    m = run.require("segment")
+    # an adult's airway tree (trachea to the visible small bronchi) encloses tens of ml
+    assert 10.0 <= m["lumen_volume_ml"] <= 400.0, m
+
+
+def test_sdf_sign_agrees_with_mask(run):
+    m = run.require("sdf")
+    assert m["lumen_voxels_negative_fraction"] > 0.99, m
+    assert 3.0 <= m["max_inscribed_radius_mm"] <= 20.0, m          # trachea radius 6-12 mm
+
+
+def test_mesh_closed_and_encloses_the_mask(run):
+    m = run.require("mesh")
+    seg = run.metrics("segment")
+    assert m["watertight"] and m["orientation_consistent"] and m["boundary_edges"] == 0, m
+    assert m["volume_m3"] * 1e6 == pytest.approx(seg["lumen_volume_ml"], rel=0.15)
+    assert m["collision_faces"] > 0
+
+
+def test_centreline_graph_has_a_root_and_generations(run):
+    m = run.require("medial_axis")
+    g = run.json("anatomy", "centreline_graph.json")
+    roots = [b for b in g["branches"] if b["parent"] == -1]
+    assert len(roots) == 1, f"{len(roots)} roots"
+    assert roots[0]["length"] > 0.0, "zero-length root branch"
+    assert m["max_generation"] >= 4 and m["n_branches"] >= 10, m
+
+
+# --------------------------------------------------------------------------- sequence
+
+
+def test_trajectory_inside_the_lumen(run):
+    m = run.require("trajectory")
+    t = run.json(SEQ, "metadata", "trajectory.json")
+    P = np.array([f["pose"] for f in t["frames"]])[:, :3, 3]
+    assert len(P) >= FRAMES and m["length_mm"] > 20.0, m
+    d = _sdf_at(run, P)
+    assert np.all(d < 0.0), f"{int((d >= 0).sum())} of {len(d)} poses outside the lumen (max sdf {d.max():.2f} mm)"
+
+
+def test_simulated_tip_inside_the_lumen(run):
+    m = run.require("simulate")
+    s = run.json(SEQ, "metadata", "simulation.json")
+    tip = np.array([f["tip_pose"] for f in s["frames"]])
+    assert np.all(np.isfinite(tip))
+    d = _sdf_at(run, tip[:, :3, 3])
+    assert np.all(d < 0.0), f"simulated tip outside the lumen in {int((d >= 0).sum())} frames (max {d.max():.2f} mm)"
+    assert m["penetration_max_mm"] < 1.0, m
+    rep = s["report"]
+    assert rep["mesh"]["bodies"] >= 1 and rep["mesh"].get("corridor_margin_mm", 0.0) >= 0.0, rep["mesh"]
+    assert m["tracking_error_median_mm"] < 5.0, m
+
+
+def test_frames_rendered_with_hits_and_finite_depth(run):
+    from room_pipeline.io.images import read_exr
+    m = run.require("render")
+    assert m["frames"] == FRAMES and m["hit_fraction_mean"] > 0.9, m
+    files = sorted((run.dir / SEQ / "depth").glob("*.exr"))
+    assert len(files) == FRAMES
+    for f in files[:: FRAMES // 5]:
+        d = np.asarray(read_exr(f)[0], float)
+        d = d[..., 0] if d.ndim == 3 else d
+        hit = np.isfinite(d) & (d > 0)
+        assert hit.mean() > 0.8, f"{f.name}: {hit.mean():.2f} of pixels hit"
+        assert np.nanmax(d[hit]) < 0.5                      # metres; nothing beyond 50 cm inside an airway
+    rgb = sorted((run.dir / SEQ / "rgb").glob("*.png"))
+    assert len(rgb) == FRAMES
+
+
+def test_noisy_frames(run):
+    from room_pipeline.io.images import read_png
+    m = run.require("noise")
+    assert m["frames"] == FRAMES, m
+    files = sorted((run.dir / SEQ / "rgb_noisy").glob("*.png"))
+    assert len(files) == FRAMES
+    img = read_png(files[0]).astype(float)
+    assert img.std() > 1.0 and 5.0 < img.mean() < 250.0
+
+
+def test_evaluations_give_numbers(run):
+    d = run.require("evaluate_depth")
+    assert d["frames"] == FRAMES and d["methods_available"] >= 1, d
+    phys = d["methods"]["physics"]
+    assert all(np.isfinite(phys[k]) for k in ("AbsRel", "L1_mm", "delta1")), phys
+    assert 0.0 <= phys["delta1"] <= 1.0
+    p = run.require("evaluate_pose")
+    assert p["frames"] == FRAMES
+    nums = [v for meth in p.values() if isinstance(meth, dict) for v in meth.values() if isinstance(v, (int, float))]
+    assert nums and all(np.isfinite(nums)), p
