@@ -42,7 +42,8 @@ def tube_poses(n: int = N_FRAMES) -> np.ndarray:
     return np.array(poses)
 
 
-def render_sequence(root: Path, n: int = N_FRAMES, size: int = SIZE, modalities=tuple(RENDERED)) -> Path:
+def render_sequence(root: Path, n: int = N_FRAMES, size: int = SIZE, modalities=tuple(RENDERED),
+                    storage: dict | None = None) -> Path:
     """Run the real ``render`` stage on a tube 'airway' (two branches, for two segmentation labels)."""
     from omegaconf import OmegaConf
 
@@ -61,7 +62,7 @@ def render_sequence(root: Path, n: int = N_FRAMES, size: int = SIZE, modalities=
                {"frames": [{"timestamp": 0.1 * k, "pose": poses[k].tolist()} for k in range(n)]})
     cfg = OmegaConf.create({"output_dir": str(root),
                             "render": {"width": size, "height": size, "fov_deg": FOV, "modalities": list(modalities),
-                                       "poses": "planned"}})
+                                       "poses": "planned", "storage": dict(storage or {})}})
     render.run(cfg, f"{PATIENT}/{SEQUENCE}")
     return paths.sequence(SEQUENCE)
 
