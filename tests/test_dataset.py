@@ -62,7 +62,7 @@ def render_sequence(root: Path, n: int = N_FRAMES, size: int = SIZE, modalities=
                {"frames": [{"timestamp": 0.1 * k, "pose": poses[k].tolist()} for k in range(n)]})
     cfg = OmegaConf.create({"output_dir": str(root),
                             "render": {"width": size, "height": size, "fov_deg": FOV, "modalities": list(modalities),
-                                       "poses": "planned", "storage": dict(storage or {})}})
+                                       "poses": "planned", **({"storage": dict(storage)} if storage else {})}})
     render.run(cfg, f"{PATIENT}/{SEQUENCE}")
     return paths.sequence(SEQUENCE)
 

@@ -379,8 +379,10 @@ def run(cfg: DictConfig, key: str) -> dict:
         cycles_threads = ex_params.threads if parallel else 0
         init = (_frame_worker, (scene, p, str(seq), src, ts, poses, nthreads, cycles_ev, cycles_threads))
         with make_executor(ex_params, init=init) as ex:
-            blocks = ex.map(_render_block, frame_blocks(len(src), storage.write_block),
-                            desc=f"render {key} (blocks of {storage.write_block} frames)")
+            # blocks small enough that every worker gets several (the executor hands out contiguous chunks of them)
+            block = storage.write_block if not parallel else \
+                max(1, min(storage.write_block, -(-len(src) // (4 * ex_params.workers))))
+            blocks = ex.map(_render_block, frame_blocks(len(src), block), desc=f"render {key} (blocks of {block} frames)")
         results = [r for b in blocks for r in b]
         frames = [r["rec"] for r in results]
         n_hit = [r["hit"] for r in results]
