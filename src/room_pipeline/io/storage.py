@@ -108,7 +108,14 @@ class StorageParams:
         d = np.where(hit, depth, 0).astype(np.float32)
         q = float(self.depth_quantum_m)
         if q > 0 and self.depth_dtype == "float32":
-            d = (np.rint(d.astype(np.float64) / q) * q).astype(np.float32)
+            m, e = np.frexp(q)
+            if m == 0.5 and float(d.max(initial=0.0)) < 2.0 ** 23 * q:
+                # a power of two: scaling by it is exact in float32, so float32 rounding gives the float64 result
+                d *= np.float32(1.0 / q)
+                np.rint(d, out=d)
+                d *= np.float32(q)
+            else:
+                d = (np.rint(d.astype(np.float64) / q) * q).astype(np.float32)
         return d
 
     @property
@@ -132,7 +139,7 @@ class StorageParams:
                  "error": ("<= 2^-11 x |flow| (half float, round to nearest)" if self.flow_dtype == "half"
                            else "float32 (relative 2^-24)")})
         flow["valid"] = "optical_flow/valid_NNNN.png, 8-bit, 255 = valid"
-        return {
+        out = {
             "depth": {"file": "depth/frame_NNNN.exr",
                       "format": f"OpenEXR {self.depth_dtype}, channel Y, metres, 0 = no hit, "
                                 f"{self.depth_compression} compression",
@@ -147,6 +154,19 @@ class StorageParams:
                     "zlib_level": int(self.png_level), "error": "lossless"},
             "point_clouds": self.point_cloud_doc(),
         }
+        for mod, comp, dtype in (("depth", self.depth_compression, self.depth_dtype),
+                                 ("normals", self.normals_compression, self.normals_dtype),
+                                 ("flow", self.flow_compression, self.flow_dtype if self.flow_format == "exr" else "")):
+            name = comp.split(":")[0]
+            if mod == "flow" and self.flow_format == "flo" or EXR_COMPRESSIONS[name]:
+                continue
+            if name == "pxr24" and dtype == "float32":     # float32 rounded to 24 bits (15 mantissa bits)
+                out[mod]["error"] += "; pxr24 codec: plus <= 2^-16 relative"
+            elif name == "pxr24":
+                continue                                    # pxr24 keeps half floats exactly
+            else:
+                out[mod]["error"] += f"; lossy {name} codec: not bounded here (benchmarks/results/write_throughput.md)"
+        return out
 
     def point_cloud_doc(self) -> dict:
         """Content of ``point_clouds/point_clouds.json``."""
