@@ -188,3 +188,27 @@ def test_frame_writer_overlaps_bounds_pending_and_reraises():
     inline = FrameWriter(threads=0)
     inline.submit(seen.append, "now")
     assert seen[-1] == "now"
+
+
+def test_ply_export_materialises_on_demand_point_clouds(seqs, tmp_path):
+    """`room export -f ply`: one PLY per frame (Open3D reads it); world frame = camera points through the pose."""
+    import open3d as o3d
+
+    from room_pipeline.export import export_sequence, main
+
+    d = seqs["default"]
+    s = export_sequence(d, tmp_path / "cam", "ply", point_stride=2)
+    assert s["frames"] == N_FRAMES and s["point_stride"] == 2
+    export_sequence(d, tmp_path / "world", "ply", frame="world")
+    r = SequenceReader(d, ["point_cloud"], point_cloud_stride=2)
+    rw = SequenceReader(d, ["point_cloud"])
+    for i in range(N_FRAMES):
+        pc = o3d.io.read_point_cloud(str(tmp_path / "cam" / "points" / f"frame_{i:04d}.ply"))
+        f = r.frame(i)
+        assert np.array_equal(np.asarray(pc.points, dtype=np.float32), f["point_cloud"]) and pc.has_colors()
+        w = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "world" / "points" / f"frame_{i:04d}.ply")).points)
+        g = rw.frame(i)
+        expect = g["point_cloud"].astype(np.float64) @ g["pose"][:3, :3].T + g["pose"][:3, 3]
+        assert np.abs(w - expect).max() < 1e-7
+    assert main(["-f", "ply", str(d), str(tmp_path / "bad"), "--frame", "world", "--point-stride", "0"]) == 2
+    assert not (tmp_path / "bad").exists()
