@@ -231,8 +231,11 @@ class SequenceReader:
         """Path of frame ``i``'s file of one modality (``flow``: the ``.exr`` or, when that is absent, ``.flo``)."""
         ext = {"depth": ".exr", "normals": ".exr", "flow": ".exr", "point_cloud": ".ply"}.get(modality, ".png")
         p = self.path / FOLDERS[modality] / f"frame_{int(self._index[self._pos(i)]):04d}{ext}"
-        if modality == "flow" and not p.is_file() and p.with_suffix(".flo").is_file():
-            return p.with_suffix(".flo")
+        if modality == "flow":
+            # what render.json says was written; sequences from before render.storage: the .flo
+            fmt = ((self.render_meta.get("storage") or {}).get("params") or {}).get("flow_format")
+            if fmt == "flo" or (fmt is None and not p.is_file()):
+                return p.with_suffix(".flo")
         return p
 
     def _pos(self, i: int) -> int:

@@ -391,11 +391,10 @@ def run(cfg: DictConfig, key: str) -> dict:
         write_json(seq / "segmentation" / "legend.json",
                    {"encoding": "uint16 PNG: label = airway branch id + 1, 0 = no hit",
                     "branch_ids": "centreline_graph.json ids", "labels": legend})
-    precision = storage.precision()
-    write_json(seq / "point_clouds" / POINT_CLOUD_JSON,
-               {**precision["point_clouds"], "rendered": "point_cloud" in mods,
-                "note": "point_cloud is not in render.modalities: the reader still builds clouds on demand "
-                        "when depth/ is there" if "point_cloud" not in mods else ""})
+    # without point_cloud in render.modalities no PLY is written: the reader builds clouds from depth/ then
+    stored = storage if "point_cloud" in mods else dataclasses.replace(storage, point_clouds="on_demand")
+    precision = stored.precision()
+    write_json(seq / "point_clouds" / POINT_CLOUD_JSON, {**precision["point_clouds"], "requested": "point_cloud" in mods})
     write_json(seq / "calibration" / "camera_params.json", {**cam.to_dict(), "storage": precision})
     write_json(seq / "metadata" / "render.json", {
         "renderer": renderer_meta, "storage": {"params": dataclasses.asdict(storage), "precision": precision},
