@@ -264,7 +264,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=80, help="consecutive frames for the throughput runs")
     ap.add_argument("--memory-frames", type=int, default=500)
     ap.add_argument("--tmp", default=None, help="scratch folder (default: a temporary folder)")
+    ap.add_argument("--memory-only", action="store_true",
+                    help="only part 4; results in write_throughput_memory.{md,json}")
     args = ap.parse_args()
+    if args.memory_only:
+        memory_only(args)
+        return
 
     from room_pipeline.noise.profile import NoiseProfile
     from room_pipeline.noise.synthesize import add_noise
@@ -348,6 +353,36 @@ def main() -> None:
     write_json(RESULTS / "write_throughput.json", res)
     (RESULTS / "write_throughput.md").write_text(markdown(res))
     print(markdown(res))
+
+
+def memory_only(args) -> None:
+    from room_pipeline.render.raycast import RaycastRenderer
+
+    load0 = os.getloadavg()
+    mesh, labels, poses, ts, info = load_inputs(args)
+    n = len(poses)
+    reps = int(np.ceil((args.memory_frames + 1) / n))
+    big, p = make_scene(mesh, labels, np.tile(poses, (reps, 1, 1)), np.arange(n * reps) * 0.1)
+    ev = RaycastRenderer(big).exposure_ev
+    tmp = Path(args.tmp or tempfile.mkdtemp(prefix="room_write_mem_"))
+    m = stage_path(big, p, tmp / "seq", DEFAULT_MODS, {}, list(range(args.memory_frames)),
+                   f"memory: every default modality over {args.memory_frames} frames", ev, rss_every=25)
+    shutil.rmtree(tmp, ignore_errors=True)
+    res = {"inputs": info, "memory": m, "load_average_before": load0, "load_average_after": os.getloadavg(),
+           "command": "python benchmarks/write_throughput.py " + " ".join(sys.argv[1:])}
+    rss = m["rss_mb"]
+    vals = [v for _, v in rss]
+    md = "\n".join([f"# Render-stage memory over {m['frames']} frames", "", f"`{res['command']}`; inputs "
+                    f"{info['source']} (poses repeated past {n}); load average {load0[0]:.2f} -> "
+                    f"{res['load_average_after'][0]:.2f}.", "",
+                    f"Resident set size every 25 frames (MB): first {vals[0]}, last {vals[-1]}, max {max(vals)}, "
+                    f"last - first {vals[-1] - vals[0]:+.1f}; {m['frames'] / m['wall_s']:.2f} frames/s wall, "
+                    f"{1e3 * m['cpu_s'] / m['frames']:.1f} CPU ms/frame.", "",
+                    "frame: MB  " + ", ".join(f"{k}: {v}" for k, v in rss)]) + "\n"
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / "write_throughput_memory.json", res)
+    (RESULTS / "write_throughput_memory.md").write_text(md)
+    print(md)
 
 
 def markdown(res: dict) -> str:
