@@ -230,8 +230,8 @@ def test_bad_input(seq, tmp_path):
         export_sequence(tmp_path / "nothing", tmp_path / "o", "tum")
     assert "nothing" in one_line(e)
     with pytest.raises(ConfigError) as e:
-        export_sequence(seq, tmp_path / "o", "ply")
-    assert "ply" in one_line(e)
+        export_sequence(seq, tmp_path / "o", "obj")
+    assert "obj" in one_line(e)
     with pytest.raises(ConfigError) as e:
         export_sequence(seq, tmp_path / "o", "tum", point_stride=4)
     assert "point_stride" in one_line(e)

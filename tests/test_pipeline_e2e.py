@@ -161,7 +161,7 @@ def test_room_run_multirun_sweeps_into_two_datasets(project):
 
 
 def test_rendered_files_are_read_by_standard_tools(project):
-    """EXR by OpenImageIO and OpenCV, PNG by OpenCV, PLY by Open3D, .flo by a Middlebury reader."""
+    """EXR (depth, normals, flow) by OpenImageIO and OpenCV, PNG by OpenCV, PLY (`room export -f ply`) by Open3D."""
     import numpy as np
 
     _sh(["room", "params", *SMALL], project)
@@ -171,6 +171,8 @@ def test_rendered_files_are_read_by_standard_tools(project):
     import cv2
     import open3d as o3d
     import OpenImageIO as oiio
+
+    from room_pipeline.dataset import SequenceReader
 
     cal = json.loads((seq / "calibration" / "camera_params.json").read_text())
     assert (cal["width"], cal["height"]) == (64, 48)
@@ -184,17 +186,21 @@ def test_rendered_files_are_read_by_standard_tools(project):
         n = oiio.ImageInput.open(str(seq / "surface_normals" / f"{name}.exr")).read_image()
         hit = depth > 0
         assert np.allclose(np.linalg.norm(n[hit], axis=1), 1.0, atol=1e-4)
-        raw = (seq / "optical_flow" / f"{name}.flo").read_bytes()
-        assert np.frombuffer(raw[:4], "<f4")[0] == np.float32(202021.25)
-        w, h = np.frombuffer(raw[4:12], "<i4")
-        flow = np.frombuffer(raw[12:], "<f4").reshape(h, w, 2)
-        assert (w, h) == (64, 48) and np.all(np.isfinite(flow))
-        pc = o3d.io.read_point_cloud(str(seq / "point_clouds" / f"{name}.ply"))
-        assert len(pc.points) == int(hit.sum()) and pc.has_normals()
+        # flow: half-float EXR, R, G = u, v (render.storage; .flo and PLY files: tests/test_storage.py)
+        flow = oiio.ImageInput.open(str(seq / "optical_flow" / f"{name}.exr")).read_image()
+        assert flow.shape == (48, 64, 2) and np.all(np.isfinite(flow))
+        assert np.array_equal(cv2.imread(str(seq / "optical_flow" / f"{name}.exr"), cv2.IMREAD_UNCHANGED)[..., 2],
+                              flow[..., 0])
+        # point clouds on demand (point_clouds/point_clouds.json), materialised by `room export -f ply`
+        pc = SequenceReader(seq, ["point_cloud"]).frame(i)
+        assert len(pc["point_cloud"]) == int(hit.sum()) and "point_cloud_normals" in pc
         seg = cv2.imread(str(seq / "segmentation" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
         assert seg.dtype == np.uint16 and np.array_equal(seg > 0, hit)
     legend = json.loads((seq / "segmentation" / "legend.json").read_text())
     assert legend["labels"]
+    _sh(["room", "export", "-f", "ply", str(seq), str(project / "pc")], project)
+    pc = o3d.io.read_point_cloud(str(project / "pc" / "points" / "frame_0000.ply"))
+    assert len(pc.points) > 0 and pc.has_normals() and pc.has_colors()
 
 
 def test_render_stage_with_cycles_rgb(project):

@@ -16,7 +16,7 @@
     room calibrate-noise --frames DIR --out PROFILE.npz [key=value ...]
         Measure a sensor-noise profile from real endoscope frames
         (room_pipeline.noise.cli).
-    room export --format {colmap,nerfstudio,tum} SEQ OUT [--overwrite] [--images rgb|rgb_noisy|none]
+    room export --format {colmap,nerfstudio,tum,ply} SEQ OUT [--overwrite] [--images rgb|rgb_noisy|none]
                 [--depth png16|npy|none] [--point-stride N]
         Export a rendered sequence with its ground-truth poses (room_pipeline.export).
     room report [--output-dir DIR] [--out FILE] [--max-frames N] [overrides]
@@ -264,7 +264,7 @@ def cmd_params(args: argparse.Namespace) -> int:
 #: imported by name only when called, so `room stage` (what dvc.yaml runs) never depends on their code.
 TOOLS = {
     "calibrate-noise": ("room_pipeline.noise.cli", "measure a sensor-noise profile from real endoscope frames"),
-    "export": ("room_pipeline.export", "export a rendered sequence (COLMAP, nerfstudio, TUM)"),
+    "export": ("room_pipeline.export", "export a rendered sequence (COLMAP, nerfstudio, TUM, PLY point clouds)"),
     "report": ("room_pipeline.report.html", "write the self-contained HTML report of a dataset"),
 }
 

@@ -31,14 +31,20 @@ Conventions of :meth:`SequenceReader.frame` (those of :mod:`room_pipeline.conven
         ``normals``        (H, W, 3) float32 unit normals in the camera frame, facing the camera;
                            0 where no hit.
         ``flow``           (H, W, 2) float32 forward optical flow t -> t+1 in pixels (``[..., 0]``
-                           along columns, ``[..., 1]`` along rows) and ``flow_valid`` (H, W) bool
+                           along columns, ``[..., 1]`` along rows), from ``optical_flow/frame_NNNN.exr``
+                           (half float, channels R, G) or ``.flo`` (Middlebury, float32), whichever
+                           the render stage wrote, and ``flow_valid`` (H, W) bool
                            (visible in frame t+1, inside it, not occluded); the last frame has
                            zero flow and no valid pixel.
         ``segmentation``   (H, W) uint16 label = airway branch id + 1, 0 = no hit; the legend
                            (label -> branch id, generation, parent) is :attr:`SequenceReader.legend`.
         ``point_cloud``    (N, 3) float32 points in the **camera** frame (metres, row-major over the
                            hit pixels), ``point_cloud_normals`` (N, 3) float32 and, when the RGB was
-                           rendered with it, ``point_cloud_colors`` (N, 3) uint8.
+                           rendered with it, ``point_cloud_colors`` (N, 3) uint8.  Read from
+                           ``point_clouds/frame_NNNN.ply`` when the render stage wrote one, otherwise
+                           built on demand from the stored depth (``z = depth``, ``x = (u - cx) / fx z``,
+                           ``y = (v - cy) / fy z``), normals and RGB, with the stride of
+                           ``point_clouds/point_clouds.json`` (``point_cloud_stride`` overrides it).
     ``valid`` (H, W) bool, the surface-hit mask, whenever a per-pixel geometric modality (depth,
     relative_depth, normals, segmentation) is requested (taken from the first of these that is).
 
@@ -56,6 +62,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.images import read_exr, read_flo, read_png
 from ..io.ply import read_ply
+from ..io.storage import POINT_CLOUD_JSON, stride_mask
 from ..stages.render import FOLDERS as RENDER_FOLDERS
 
 #: modality -> folder inside the sequence (the render stage's layout plus the noise stage's frames)
@@ -113,7 +120,8 @@ class SequenceReader:
     read per frame, by :meth:`frame`.
     """
 
-    def __init__(self, path: str | os.PathLike, modalities: Iterable[str] | None = None) -> None:
+    def __init__(self, path: str | os.PathLike, modalities: Iterable[str] | None = None,
+                 point_cloud_stride: int | None = None) -> None:
         self.path = Path(path)
         if not self.path.is_dir():
             raise InputError(f"sequence folder not found: {self.path}")
@@ -144,8 +152,16 @@ class SequenceReader:
             raise InputError(f"{self.path / CAMERA_JSON}: missing width/height/fx/fy/cx/cy") from None
         i = self.intrinsics
         self.K = np.array([[i["fx"], 0.0, i["cx"]], [0.0, i["fy"], i["cy"]], [0.0, 0.0, 1.0]])
+        self._pc_doc: dict = {}
         self.modalities = self._resolve(modalities)
         self._legend: dict | None = None
+        stride = point_cloud_stride if point_cloud_stride is not None else self._pc_doc.get("stride", 1)
+        try:
+            self.point_cloud_stride = int(stride)
+            if self.point_cloud_stride < 1:
+                raise ValueError
+        except (TypeError, ValueError):
+            raise InputError(f"point cloud stride must be an integer >= 1, got {stride!r}") from None
 
     # ------------------------------------------------------------------ set-up
     def _resolve(self, modalities: Iterable[str] | None) -> tuple[str, ...]:
@@ -165,6 +181,12 @@ class SequenceReader:
             folder = self.path / FOLDERS[m]
             if not folder.is_dir():
                 raise InputError(f"modality '{m}' requested but {folder} does not exist")
+        if "point_cloud" in mods:
+            doc_path = self.path / FOLDERS["point_cloud"] / POINT_CLOUD_JSON
+            self._pc_doc = _read_json(doc_path) if doc_path.is_file() else {"storage": "ply"}
+            if self._pc_doc.get("storage") == "on_demand" and not (self.path / FOLDERS["depth"]).is_dir():
+                raise InputError(f"{doc_path}: point clouds are built from depth, but {self.path / FOLDERS['depth']} "
+                                 f"does not exist")
         return tuple(m for m in MODALITIES if m in mods)
 
     # ------------------------------------------------------------------ sequence-level
@@ -206,9 +228,15 @@ class SequenceReader:
         return self._legend
 
     def file(self, modality: str, i: int) -> Path:
-        """Path of frame ``i``'s file of one modality (``flow``: the ``.flo``)."""
-        ext = {"depth": ".exr", "normals": ".exr", "flow": ".flo", "point_cloud": ".ply"}.get(modality, ".png")
-        return self.path / FOLDERS[modality] / f"frame_{int(self._index[self._pos(i)]):04d}{ext}"
+        """Path of frame ``i``'s file of one modality (``flow``: the ``.exr`` or, when that is absent, ``.flo``)."""
+        ext = {"depth": ".exr", "normals": ".exr", "flow": ".exr", "point_cloud": ".ply"}.get(modality, ".png")
+        p = self.path / FOLDERS[modality] / f"frame_{int(self._index[self._pos(i)]):04d}{ext}"
+        if modality == "flow":
+            # what render.json says was written; sequences from before render.storage: the .flo
+            fmt = ((self.render_meta.get("storage") or {}).get("params") or {}).get("flow_format")
+            if fmt == "flo" or (fmt is None and not p.is_file()):
+                return p.with_suffix(".flo")
+        return p
 
     def _pos(self, i: int) -> int:
         n = len(self._index)
@@ -278,7 +306,13 @@ class SequenceReader:
             valid = np.any(n != 0, axis=-1) if valid is None else valid
         if "flow" in mods:
             p = self.file("flow", j)
-            out["flow"] = self._check_shape(read_flo(p), p, 2)
+            if p.suffix == ".flo":
+                fl = read_flo(p)
+            else:
+                fl = read_exr(p)[0]
+                if fl.ndim != 3 or fl.shape[2] != 2:
+                    raise InputError(f"{p}: expected a 2-channel (u, v) flow EXR, got shape {fl.shape}")
+            out["flow"] = self._check_shape(np.ascontiguousarray(fl, dtype=np.float32), p, 2)
             pv = self.path / FOLDERS["flow"] / f"valid_{int(self._index[j]):04d}.png"
             v = self._check_shape(read_png(pv), pv, None)
             out["flow_valid"] = v > 0
@@ -289,7 +323,9 @@ class SequenceReader:
                 raise InputError(f"{p}: expected a 16-bit label PNG, got {s.dtype}")
             out["segmentation"] = s
             valid = s > 0 if valid is None else valid
-        if "point_cloud" in mods:
+        if "point_cloud" in mods and self._pc_doc.get("storage") == "on_demand":
+            out.update(self._point_cloud_on_demand(j, out))
+        elif "point_cloud" in mods:
             p = self.file("point_cloud", j)
             vert, _ = read_ply(p)
             try:
@@ -303,6 +339,35 @@ class SequenceReader:
         if valid is not None:
             out["valid"] = valid
         return out
+
+    def _point_cloud_on_demand(self, j: int, have: dict) -> dict:
+        """The frame's point cloud from the stored depth (+ normals, rgb when their folders exist)."""
+        if "depth" in have:
+            d = have["depth"]
+        else:
+            p = self.file("depth", j)
+            d = self._check_shape(np.ascontiguousarray(read_exr(p)[0], dtype=np.float32), p, None)
+            d = np.where(np.isfinite(d) & (d > 0), d, np.float32(0))
+        keep = stride_mask(d > 0, self.point_cloud_stride)
+        vv, uu = np.nonzero(keep)                                        # row-major
+        i = self.intrinsics
+        z = d[vv, uu]
+        # the renderer's arithmetic: float64 ray (z = 1) -> float32, times the float32 depth
+        x = ((uu - i["cx"]) / i["fx"]).astype(np.float32) * z
+        y = ((vv - i["cy"]) / i["fy"]).astype(np.float32) * z
+        res = {"point_cloud": np.stack([x, y, z], axis=1).astype(np.float32)}
+        if (self.path / FOLDERS["normals"]).is_dir():
+            n = have.get("normals")
+            if n is None:
+                p = self.file("normals", j)
+                n = self._check_shape(np.ascontiguousarray(read_exr(p)[0], dtype=np.float32), p, 3)
+            res["point_cloud_normals"] = np.ascontiguousarray(n[vv, uu], dtype=np.float32)
+        if (self.path / FOLDERS["rgb"]).is_dir() and self.file("rgb", j).is_file():
+            rgb = have.get("rgb")
+            if rgb is None:
+                rgb = self._rgb("rgb", j)
+            res["point_cloud_colors"] = np.ascontiguousarray(rgb[vv, uu])
+        return res
 
     def __repr__(self) -> str:
         return f"SequenceReader({str(self.path)!r}, {len(self)} frames, modalities={list(self.modalities)})"

@@ -7,6 +7,8 @@
 ``nerfstudio``  ``transforms.json`` (nerfstudio / instant-ngp, OpenGL camera) + ``images/``,
                 ``depth/``, ``sparse_points.ply`` (:mod:`room_pipeline.export.nerfstudio`)
 ``tum``         ``groundtruth.txt``, a TUM RGB-D trajectory (:mod:`room_pipeline.export.tum`)
+``ply``         ``points/frame_NNNN.ply``, every frame's point cloud (camera or world frame), built on
+                demand from depth when the render stage wrote none (:mod:`room_pipeline.export.ply`)
 
 Every export also writes ``room_export.json`` (format, options, source, conventions).  The
 export is built in a temporary folder next to ``out_dir`` and renamed onto it when complete, so
@@ -15,8 +17,8 @@ export is built in a temporary folder next to ``out_dir`` and renamed onto it wh
 
 Command line (``main``)::
 
-    room export --format {colmap,nerfstudio,tum} SEQ OUT [--overwrite] [--images rgb|rgb_noisy|none]
-                [--depth png16|npy|none] [--point-stride N]
+    room export --format {colmap,nerfstudio,tum,ply} SEQ OUT [--overwrite] [--images rgb|rgb_noisy|none]
+                [--depth png16|npy|none] [--point-stride N] [--frame camera|world]
 """
 from __future__ import annotations
 
@@ -34,12 +36,13 @@ from ..conventions import metadata_block
 from ..errors import ConfigError, InputError, RoomError
 from ..io.atomic import write_json
 
-FORMATS = ("colmap", "nerfstudio", "tum")
+FORMATS = ("colmap", "nerfstudio", "tum", "ply")
 #: options each format takes (keyword -> default)
 OPTIONS: dict[str, dict[str, Any]] = {
     "colmap": {"images": "rgb", "point_stride": 16},
     "nerfstudio": {"images": "rgb", "depth": "png16", "point_stride": 16},
     "tum": {},
+    "ply": {"point_stride": 1, "frame": "camera"},
 }
 
 
@@ -108,6 +111,9 @@ def export_sequence(seq_dir: str | os.PathLike, out_dir: str | os.PathLike, fmt:
         elif fmt == "nerfstudio":
             from .nerfstudio import write_nerfstudio
             summary = write_nerfstudio(reader, tmp, **opts)
+        elif fmt == "ply":
+            from .ply import write_points
+            summary = write_points(reader, tmp, **opts)
         else:
             from .tum import write_tum
             summary = write_tum(reader, tmp)
@@ -130,14 +136,17 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     p.add_argument("--depth", choices=("png16", "npy", "none"), default=None,
                    help="nerfstudio depth files: png16 (1e-5 m units, default), npy (float32 m), none")
     p.add_argument("--point-stride", type=int, default=None, dest="point_stride",
-                   help="pixels between depth samples of the sparse points (colmap, nerfstudio; 0 = none; default 16)")
+                   help="pixels between depth samples of the sparse points (colmap, nerfstudio; 0 = none; default 16; "
+                        "ply: default 1)")
+    p.add_argument("--frame", choices=("camera", "world"), default=None,
+                   help="ply: coordinate frame of the points (default camera)")
     return p
 
 
 def run_args(args: argparse.Namespace) -> int:
     """Run a parsed ``room export`` command line; prints one summary line."""
     opts: dict[str, Any] = {}
-    for key in ("images", "depth", "point_stride"):
+    for key in ("images", "depth", "point_stride", "frame"):
         val = getattr(args, key, None)
         if val is None:
             continue

@@ -6,8 +6,11 @@ names), so a re-run reproduces the files bit for bit.
 
 EXR (OpenImageIO)
     ``write_exr(path, array, channels, attributes)``: (H, W) or (H, W, C)
-    float32 (``half=True`` for 16-bit half floats), ZIP compression, scanline
-    order.  ``attributes`` become EXR header attributes: ``str``, ``int``,
+    float32 (``half=True`` for 16-bit half floats), scanline order, ZIP
+    compression unless ``compression`` names another OpenEXR codec
+    (:data:`EXR_COMPRESSIONS`; ``piz``, ``zip``, ``zips``, ``rle`` and ``none``
+    are lossless, ``pxr24``, ``b44``, ``dwaa``, ``dwab`` lossy: the render stage
+    chooses per modality from ``benchmarks/results/write_throughput.md``).  ``attributes`` become EXR header attributes: ``str``, ``int``,
     and ``float`` values exactly representable in float32 (and flat
     sequences of those) natively (EXR ``string`` / ``int`` / ``float`` /
     float array); anything else -- other floats (OpenImageIO's Python binding
@@ -21,7 +24,8 @@ EXR (OpenImageIO)
 PNG (OpenCV)
     ``write_png8`` / ``write_png16``: (H, W) grey, (H, W, 3) RGB or (H, W, 4)
     RGBA arrays (channel order **RGB**, converted to OpenCV's BGR on writing
-    and back on reading), uint8 / uint16, fixed compression level.
+    and back on reading), uint8 / uint16; zlib level ``level`` (0-9, default
+    :data:`PNG_COMPRESSION`; lossless at every level, only size and time change).
 
 Middlebury optical flow ``.flo``
     Little-endian: the float32 ``202021.25`` (the bytes ``PIEH``), int32
@@ -46,6 +50,9 @@ _FLO_TAG = b"PIEH"
 ATTR_PREFIX = "room:"
 JSON_LIST_ATTR = "room:json_attributes"
 PNG_COMPRESSION = 3
+#: OpenEXR codecs OpenImageIO writes (name -> lossless?)
+EXR_COMPRESSIONS = {"none": True, "rle": True, "zips": True, "zip": True, "piz": True, "pxr24": False,
+                    "b44": False, "b44a": False, "dwaa": False, "dwab": False}
 
 _DEFAULT_CHANNELS = {1: ("Y",), 2: ("U", "V"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
 
@@ -98,15 +105,20 @@ def _set_attribute(spec, name: str, value: Any) -> bool:
 
 
 def write_exr(path: str | os.PathLike, array: np.ndarray, channels: Sequence[str] | None = None,
-              attributes: Mapping[str, Any] | None = None, half: bool = False) -> None:
-    """Write an (H, W) or (H, W, C) array as a ZIP-compressed float32 (or half) OpenEXR, atomically.
+              attributes: Mapping[str, Any] | None = None, half: bool = False,
+              compression: str = "zip") -> None:
+    """Write an (H, W) or (H, W, C) array as a float32 (or half) OpenEXR, atomically.
 
     ``channels`` defaults to Y / U,V / R,G,B / R,G,B,A by channel count.
     Arrays that are not float32 are converted (values must be finite or the
-    caller accepts inf/NaN in the file).
+    caller accepts inf/NaN in the file).  ``compression``: a key of
+    :data:`EXR_COMPRESSIONS` (``dwaa``/``dwab`` may carry a level,
+    e.g. ``dwaa:45``).
     """
     import OpenImageIO as oiio
 
+    if compression.split(":")[0] not in EXR_COMPRESSIONS:
+        raise ValueError(f"EXR compression must be one of {sorted(EXR_COMPRESSIONS)}, got {compression!r}")
     a = _as_hwc(array)
     h, w, c = a.shape
     names = tuple(channels) if channels is not None else _DEFAULT_CHANNELS.get(c, tuple(f"C{i}" for i in range(c)))
@@ -115,7 +127,7 @@ def write_exr(path: str | os.PathLike, array: np.ndarray, channels: Sequence[str
     pixel_type = oiio.HALF if half else oiio.FLOAT
     spec = oiio.ImageSpec(w, h, c, pixel_type)
     spec.channelnames = names
-    spec.attribute("compression", "zip")
+    spec.attribute("compression", compression)
     spec.attribute("openexr:lineOrder", "increasingY")
     # no DateTime (OpenImageIO adds the current time unless told otherwise): deterministic bytes
     spec.attribute("DateTime", "")
@@ -177,7 +189,7 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...], dict
 # --------------------------------------------------------------------------- PNG
 
 
-def _png_bytes(image: np.ndarray, dtype) -> bytes:
+def _png_bytes(image: np.ndarray, dtype, level: int = PNG_COMPRESSION) -> bytes:
     import cv2
 
     a = np.asarray(image)
@@ -194,20 +206,20 @@ def _png_bytes(image: np.ndarray, dtype) -> bytes:
             raise ValueError(f"PNG needs 1, 3 or 4 channels, got {a.shape[2]}")
     elif a.ndim != 2:
         raise ValueError(f"PNG image must be (H, W) or (H, W, C), got shape {a.shape}")
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a), [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a), [cv2.IMWRITE_PNG_COMPRESSION, int(level)])
     if not ok:
         raise OSError("OpenCV failed to encode PNG")
     return buf.tobytes()
 
 
-def write_png8(path: str | os.PathLike, image: np.ndarray) -> None:
-    """8-bit PNG (grey, RGB or RGBA uint8), atomically."""
-    write_bytes(path, _png_bytes(image, np.uint8))
+def write_png8(path: str | os.PathLike, image: np.ndarray, level: int = PNG_COMPRESSION) -> None:
+    """8-bit PNG (grey, RGB or RGBA uint8), atomically; ``level``: zlib level 0-9."""
+    write_bytes(path, _png_bytes(image, np.uint8, level))
 
 
-def write_png16(path: str | os.PathLike, image: np.ndarray) -> None:
-    """16-bit PNG (grey, RGB or RGBA uint16), atomically."""
-    write_bytes(path, _png_bytes(image, np.uint16))
+def write_png16(path: str | os.PathLike, image: np.ndarray, level: int = PNG_COMPRESSION) -> None:
+    """16-bit PNG (grey, RGB or RGBA uint16), atomically; ``level``: zlib level 0-9."""
+    write_bytes(path, _png_bytes(image, np.uint16, level))
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:

@@ -1,25 +1,32 @@
 """Stage `render`: a sequence's camera poses + the lumen mesh -> the ROOM modalities.
 
 Writes into ``<patient>/<sequence>/``: ``rgb/frame_NNNN.png`` (8-bit sRGB),
-``depth/frame_NNNN.exr`` (planar z, float32 metres, channel Y, 0 = no hit),
+``depth/frame_NNNN.exr`` (planar z, float32 metres rounded to 2^-17 m, channel Y, 0 = no hit),
 ``relative_depth/frame_NNNN.png`` (16-bit normalised inverse depth, 0 = no hit;
 per-frame [d_min, d_max] in ``metadata/render.json``),
-``surface_normals/frame_NNNN.exr`` (unit normals in the OpenCV camera frame,
-facing the camera; channels R, G, B = x, y, z; 0 = no hit),
-``optical_flow/frame_NNNN.flo`` (Middlebury, forward t -> t+1, pixels) with
+``surface_normals/frame_NNNN.exr`` (half-float unit normals in the OpenCV camera
+frame, facing the camera; channels R, G, B = x, y, z; 0 = no hit),
+``optical_flow/frame_NNNN.exr`` (half float, R, G = u, v; or Middlebury ``.flo``
+with ``render.storage.flow_format=flo``; forward t -> t+1, pixels) with
 ``optical_flow/valid_NNNN.png`` (255 = valid: visible at t+1, inside, not
-occluded), ``point_clouds/frame_NNNN.ply`` (camera frame, metres, normals,
-colour), ``segmentation/frame_NNNN.png`` (uint16: airway branch id + 1, 0 =
+occluded), ``point_clouds/`` (``point_clouds.json``, and with
+``render.storage.point_clouds=ply`` a binary PLY per frame: camera frame,
+metres, normals, colour; by default generated on demand by the reader),
+``segmentation/frame_NNNN.png`` (uint16: airway branch id + 1, 0 =
 no hit) with ``segmentation/legend.json`` (label -> branch id, generation),
 ``calibration/camera_params.json`` and ``metadata/render.json`` (renderer,
-exposure, per-frame source index, timestamp, camera-to-world pose).
+exposure, per-frame source index, timestamp, camera-to-world pose).  Precision,
+codec and error bound of every modality (``render.storage``,
+:mod:`room_pipeline.io.storage`) are stated in both JSON files ("storage").
 
 Execution (config section ``execution``, :mod:`room_pipeline.execution`):
 the frames of the sequence fan out over the executor's workers (serial, local
 processes or Ray actors), each building its renderers once
-(:func:`_frame_worker`) and rendering contiguous ranges of frame indices
-(:func:`_render_frame` writes the frame's files atomically and returns its
-record).  Everything computed once per sequence is computed here, before the
+(:func:`_frame_worker`) and rendering contiguous blocks of frame indices
+(:func:`_render_block`; :func:`_render_frame` hands the frame's files to the
+worker's :class:`~room_pipeline.io.storage.FrameWriter`, whose threads encode
+and write them atomically while the next frame is cast; a block returns its
+records once all its files are on disk).  Everything computed once per sequence is computed here, before the
 fan-out: face labels, the automatic exposure (the ray caster's and, with
 backend ``cycles``, Cycles' own, on the film's reference frame) and the
 renderer metadata; the workers get the exposure fixed.  So the backend and the
@@ -46,6 +53,7 @@ from ..errors import ConfigError, InputError
 from ..execution import ExecutionParams, ensure_writable, make_executor, remove_stale_temp_files
 from ..io.atomic import write_json
 from ..io.images import write_exr, write_flo, write_png8, write_png16
+from ..io.storage import POINT_CLOUD_JSON, FrameWriter, StorageParams, stride_mask
 from ..io.mesh import Mesh, read_obj
 from ..render.camera import CameraIntrinsics
 from ..render.scene import Film, Scene, TipLight, TissueMaterial
@@ -82,6 +90,7 @@ class RenderParams:
     texture: dict = dataclasses.field(default_factory=dict)
     cycles_samples: int = 16
     cycles_denoise: bool = True
+    storage: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "RenderParams":
@@ -102,6 +111,7 @@ class RenderParams:
         if not 0.0 < p.near_mm < p.far_mm:
             raise ConfigError(f"render: 0 < near_mm < far_mm required, got near_mm={p.near_mm}, far_mm={p.far_mm}")
         texture_params(p.texture)
+        StorageParams.from_dict(p.storage)
         return p
 
 
@@ -246,12 +256,36 @@ def _frame_worker(scene: Scene, p: RenderParams, seq: str, src: np.ndarray, ts: 
         import multiprocessing.util
 
         multiprocessing.util.Finalize(r, r.cycles.close, exitpriority=10)
-    return {"r": r, "seq": Path(seq), "mods": set(p.modalities), "src": src, "ts": ts, "poses": poses}
+    st = StorageParams.from_dict(p.storage)
+    mods = set(p.modalities)
+    if "point_cloud" in mods and st.point_clouds == "on_demand":
+        mods.discard("point_cloud")                 # built by the reader from depth / normals / rgb
+    return {"r": r, "seq": Path(seq), "mods": mods, "src": src, "ts": ts, "poses": poses, "storage": st,
+            "writer": FrameWriter(st.write_threads, st.max_pending)}
+
+
+def _render_block(state: dict, block: tuple[int, int]) -> list[dict]:
+    """Render frames ``block[0] .. block[1] - 1`` in order; return their records once all their files are written."""
+    writer: FrameWriter = state["writer"]
+    out = []
+    try:
+        for i in range(*block):
+            out.append(_render_frame(state, i))
+    finally:
+        writer.wait()
+    return out
 
 
 def _render_frame(state: dict, i: int) -> dict:
-    """Render frame ``i``, write its files (atomically) and return its record and summary numbers."""
+    """Render frame ``i``, hand its files to the writer (atomic writes) and return its record and summary numbers.
+
+    Every array handed over is one the renderer will not touch again (fresh
+    arrays per frame; the cached cast's depth is copied by ``depth_array``).
+    """
     seq, src, ts, poses = state["seq"], state["src"], state["ts"], state["poses"]
+    st: StorageParams = state["storage"]
+    put = state["writer"].submit
+    lvl = int(st.png_level)
     out = state["r"].render(i, state["mods"])
     name = f"frame_{i:04d}"
     hit = out["hit"]
@@ -259,28 +293,45 @@ def _render_frame(state: dict, i: int) -> dict:
            "pose": np.round(poses[src[i]], 12).tolist(), "hit_fraction": float(hit.mean())}
     flow_valid = None
     if "rgb" in out:
-        write_png8(seq / "rgb" / f"{name}.png", out["rgb"])
+        put(write_png8, seq / "rgb" / f"{name}.png", out["rgb"], lvl)
     if "depth" in out:
-        write_exr(seq / "depth" / f"{name}.exr", np.where(hit, out["depth"], 0).astype(np.float32),
-                  channels=("Y",), attributes={"units": "m", "quantity": "planar z depth, 0 = no hit"})
+        put(write_exr, seq / "depth" / f"{name}.exr", st.depth_array(out["depth"], hit),
+            channels=("Y",), half=st.depth_dtype == "half", compression=st.depth_compression,
+            attributes={"units": "m", "quantity": "planar z depth, 0 = no hit",
+                        "quantum_m": float(st.depth_quantum_m) if st.depth_dtype == "float32" else 0.0})
     if "relative_depth" in out:
-        write_png16(seq / "relative_depth" / f"{name}.png", out["relative_depth"])
+        put(write_png16, seq / "relative_depth" / f"{name}.png", out["relative_depth"], lvl)
         rec["relative_depth_range_m"] = [float(x) for x in out["relative_depth_range"]]
     if "normals" in out:
-        write_exr(seq / "surface_normals" / f"{name}.exr", out["normals"].astype(np.float32),
-                  attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
+        put(write_exr, seq / "surface_normals" / f"{name}.exr", out["normals"], half=st.normals_dtype == "half",
+            compression=st.normals_compression,
+            attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
     if "flow" in out:
-        write_flo(seq / "optical_flow" / f"{name}.flo", out["flow"].astype(np.float32))
-        write_png8(seq / "optical_flow" / f"valid_{i:04d}.png", (out["flow_valid"].astype(np.uint8) * 255))
+        if st.flow_format == "exr":
+            put(write_exr, seq / "optical_flow" / f"{name}.exr", out["flow"], channels=("R", "G"),
+                half=st.flow_dtype == "half", compression=st.flow_compression,
+                attributes={"units": "px", "quantity": "forward optical flow t -> t+1; R = u (columns), "
+                                                       "G = v (rows)"})
+        else:
+            put(write_flo, seq / "optical_flow" / f"{name}.flo", out["flow"].astype(np.float32))
+        put(write_png8, seq / "optical_flow" / f"valid_{i:04d}.png", out["flow_valid"].astype(np.uint8) * 255, lvl)
         flow_valid = float(out["flow_valid"].mean())
     if "point_cloud" in out:
         from ..render.raycast import write_point_cloud
 
-        write_point_cloud(seq / "point_clouds" / f"{name}.ply", out, i, poses[src[i]])
+        if st.point_cloud_stride > 1:
+            keep = stride_mask(hit, st.point_cloud_stride)[hit]
+            out = {k: (v[keep] if k.startswith("point_cloud") else v) for k, v in out.items()}
+        put(write_point_cloud, seq / "point_clouds" / f"{name}.ply", out, i, poses[src[i]])
     if "segmentation" in out:
-        write_png16(seq / "segmentation" / f"{name}.png", (out["segmentation"] + 1).astype(np.uint16))
+        put(write_png16, seq / "segmentation" / f"{name}.png", (out["segmentation"] + 1).astype(np.uint16), lvl)
     return {"rec": rec, "hit": float(hit.mean()), "flow_valid": flow_valid, "pid": os.getpid(),
             "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+
+
+def frame_blocks(n: int, size: int) -> list[tuple[int, int]]:
+    """Contiguous ``[start, stop)`` blocks of at most ``size`` frames covering ``range(n)``."""
+    return [(s, min(s + size, n)) for s in range(0, n, max(1, int(size)))]
 
 
 def _peak_rss_mb(results: list[dict]) -> float:
@@ -304,6 +355,7 @@ def _peak_rss_mb(results: list[dict]) -> float:
 def run(cfg: DictConfig, key: str) -> dict:
     patient, sequence = split_key(key)
     p = RenderParams.from_dict(section(cfg, "render"))
+    storage = StorageParams.from_dict(p.storage)
     ex_params = execution_params(cfg)
     parallel = ex_params.backend != "serial" and ex_params.workers > 1
     paths = patient_paths(cfg, patient)
@@ -333,7 +385,11 @@ def run(cfg: DictConfig, key: str) -> dict:
         cycles_threads = ex_params.threads if parallel else 0
         init = (_frame_worker, (scene, p, str(seq), src, ts, poses, nthreads, cycles_ev, cycles_threads))
         with make_executor(ex_params, init=init) as ex:
-            results = ex.map(_render_frame, range(len(src)), desc=f"render {key}")
+            # blocks small enough that every worker gets several (the executor hands out contiguous chunks of them)
+            block = storage.write_block if not parallel else \
+                max(1, min(storage.write_block, -(-len(src) // (4 * ex_params.workers))))
+            blocks = ex.map(_render_block, frame_blocks(len(src), block), desc=f"render {key} (blocks of {block} frames)")
+        results = [r for b in blocks for r in b]
         frames = [r["rec"] for r in results]
         n_hit = [r["hit"] for r in results]
         n_valid_flow = [r["flow_valid"] for r in results if r["flow_valid"] is not None]
@@ -341,9 +397,13 @@ def run(cfg: DictConfig, key: str) -> dict:
         write_json(seq / "segmentation" / "legend.json",
                    {"encoding": "uint16 PNG: label = airway branch id + 1, 0 = no hit",
                     "branch_ids": "centreline_graph.json ids", "labels": legend})
-    write_json(seq / "calibration" / "camera_params.json", cam.to_dict())
+    # without point_cloud in render.modalities no PLY is written: the reader builds clouds from depth/ then
+    stored = storage if "point_cloud" in mods else dataclasses.replace(storage, point_clouds="on_demand")
+    precision = stored.precision()
+    write_json(seq / "point_clouds" / POINT_CLOUD_JSON, {**precision["point_clouds"], "requested": "point_cloud" in mods})
+    write_json(seq / "calibration" / "camera_params.json", {**cam.to_dict(), "storage": precision})
     write_json(seq / "metadata" / "render.json", {
-        "renderer": renderer_meta,
+        "renderer": renderer_meta, "storage": {"params": dataclasses.asdict(storage), "precision": precision},
         "poses": p.poses, "modalities": sorted(mods), "frames": frames,
         "flow": "forward t -> t+1 in pixels (u right, v down); the last frame has zero flow and no valid pixel",
         "conventions": metadata_block(),

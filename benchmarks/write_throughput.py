@@ -1,0 +1,437 @@
+#!/usr/bin/env python3
+"""Dataset storage: bytes per frame, write / read time and error of every codec choice, and write throughput.
+
+Inputs: a pipeline output folder (``--data``, default ``data/output``) holding
+``patient_000/anatomy/lung_model.obj``, ``anatomy/centreline_graph.json`` and
+``sequence_000/metadata/simulation.json`` (what ``room run --until simulate``
+writes for the default phantom patient); when absent, the phantom of
+``benchmarks/raycast_renderer.py`` (1 mm, generations <= 6) and its planned
+path.  Camera: the render config's default (600x600, 85 deg).
+
+1. Codec table: ``--sample`` frames spread over the sequence, rendered once with
+   every default modality (the render stage's renderer); every candidate
+   encoding of every modality is written to a scratch folder and read back:
+   bytes/frame, encode+write ms (CPU of the whole process and wall), read ms,
+   and the maximum error against the float32 render (depth in mm, normals per
+   component, flow in px).  The noisy RGB (the ``noise`` stage's default
+   profile, beta 1) is measured the same way.
+2. Bytes per 448-frame default sequence: the chosen (default) encodings'
+   mean bytes/frame over the sample x 448 (extrapolated from the sample, not a
+   full render; say so when quoting it).
+3. Throughput, side by side in one run over ``--frames`` consecutive frames
+   of the sequence: the bare Open3D ray cast of every pixel (``RaycastingScene.
+   cast_rays``), then the render stage's own per-frame path (``_frame_worker``
+   + ``_render_block``: render, encode, write) for the geometric modalities
+   (depth, relative depth, normals, flow, segmentation) with the default
+   storage, with the writer threads off, with the previous storage (float32
+   EXR, .flo, no rounding), and every default modality.  Wall frames/s, CPU
+   ms/frame of the process, load average before/after.
+4. Memory: resident set size every 25 frames over ``--memory-frames`` frames
+   (the sequence's poses repeated when it is shorter) through the same path.
+
+Wall times on the shared 2-core machine include the other users' load: the
+load average and the CPU time are printed next to them.
+
+    python benchmarks/write_throughput.py [--data data/output] [--sample 12] [--frames 80] [--memory-frames 500]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from room_pipeline.io.atomic import write_json  # noqa: E402
+from room_pipeline.io.images import (read_exr, read_flo, read_png, write_exr, write_flo, write_png8,  # noqa: E402
+                                     write_png16)
+from room_pipeline.io.ply import read_ply  # noqa: E402
+from room_pipeline.io.storage import StorageParams, stride_mask  # noqa: E402
+
+SEQ_FRAMES = 448
+GEOMETRIC = ("depth", "relative_depth", "normals", "flow", "segmentation")
+DEFAULT_MODS = ("rgb", "depth", "relative_depth", "normals", "flow", "segmentation")
+OLD_STORAGE = {"depth_quantum_m": 0.0, "normals_dtype": "float32", "flow_format": "flo", "write_threads": 0}
+
+
+def cpu_s() -> float:
+    return time.process_time()
+
+
+def rss_mb() -> float:
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def load_inputs(args):
+    """(mesh, face labels, legend, poses, timestamps, description)."""
+    from room_pipeline.anatomy.centreline import CentrelineGraph
+    from room_pipeline.io.mesh import read_obj
+    from room_pipeline.stages.render import face_labels
+
+    pat = Path(args.data) / "patient_000"
+    sim = pat / "sequence_000" / "metadata" / "simulation.json"
+    if (pat / "anatomy" / "lung_model.obj").is_file() and sim.is_file():
+        mesh = read_obj(pat / "anatomy" / "lung_model.obj")
+        labels, _ = face_labels(mesh, CentrelineGraph.from_dict(json.loads(
+            (pat / "anatomy" / "centreline_graph.json").read_text())))
+        doc = json.loads(sim.read_text())
+        poses = np.array([f["tip_pose"] for f in doc["frames"]])
+        ts = np.array([f["timestamp"] for f in doc["frames"]])
+        return mesh, labels, poses, ts, {"source": str(pat), "poses": "simulated (sequence_000)",
+                                         "faces": int(mesh.n_faces), "frames": len(poses)}
+    from raycast_renderer import make_inputs
+
+    mesh, poses, ts, info = make_inputs(argparse.Namespace(obj=None, trajectory=None))
+    return mesh, None, poses, ts, {"source": "benchmarks/raycast_renderer.py phantom", **info,
+                                   "faces": int(mesh.n_faces), "frames": len(poses)}
+
+
+def make_scene(mesh, labels, poses, ts):
+    from omegaconf import OmegaConf
+
+    from room_pipeline.config.compose import section
+    from room_pipeline.render.camera import CameraIntrinsics
+    from room_pipeline.render.scene import Film, Scene, TipLight, TissueMaterial
+    from room_pipeline.stages.render import RenderParams, texture_params
+
+    cfg = OmegaConf.load(ROOT / "params.yaml")
+    p = RenderParams.from_dict(section(cfg, "render"))
+    cam = CameraIntrinsics.from_fov(p.width, p.height, p.fov_deg, p.near_mm * 1e-3, p.far_mm * 1e-3)
+    scene = Scene(mesh, cam, poses, ts,
+                  material=TissueMaterial(base_color=tuple(p.base_color), roughness=p.roughness,
+                                          specular=p.specular, texture=texture_params(p.texture)),
+                  light=TipLight(power_w=p.light_power_w, radius_m=p.light_radius_mm * 1e-3),
+                  film=Film(exposure_ev=p.exposure_ev, auto_target=p.auto_exposure_target), face_labels=labels)
+    return scene, p
+
+
+# --------------------------------------------------------------------------- 1. codecs
+
+
+def timed(fn, *a, **kw):
+    c0, w0 = cpu_s(), time.perf_counter()
+    out = fn(*a, **kw)
+    return out, 1e3 * (cpu_s() - c0), 1e3 * (time.perf_counter() - w0)
+
+
+def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
+    """Every candidate encoding of every modality over the sampled frames."""
+    cands = []
+
+    def exr(mod, arr_key, label, prep, half, comp, err_fn, channels=None, default=False):
+        cands.append((mod, label, default, lambda f, p: write_exr(p, prep(f), channels=channels, half=half,
+                                                                  compression=comp),
+                      lambda p: read_exr(p)[0], err_fn, ".exr"))
+
+    q17, q16 = 2.0 ** -17, 2.0 ** -16
+
+    def rounded(q):
+        return lambda f: StorageParams(depth_quantum_m=q).depth_array(f["depth"], f["hit"])
+
+    raw_depth = lambda f: np.where(f["hit"], f["depth"], 0).astype(np.float32)  # noqa: E731
+    depth_err = lambda f, a: 1e3 * float(np.abs(a.astype(np.float64) - f["depth"].astype(np.float64))[f["hit"]].max())  # noqa: E731,E501
+    for comp in ("none", "zip", "piz", "zips"):
+        exr("depth", "depth", f"float32 {comp}", raw_depth, False, comp, depth_err, ("Y",))
+    for comp in ("zip", "piz"):
+        exr("depth", "depth", f"float32 rounded 2^-17 m, {comp}", rounded(q17), False, comp, depth_err, ("Y",),
+            default=comp == "zip")
+    exr("depth", "depth", "float32 rounded 2^-16 m, zip", rounded(q16), False, "zip", depth_err, ("Y",))
+    exr("depth", "depth", "float32 pxr24 (lossy 24-bit)", raw_depth, False, "pxr24", depth_err, ("Y",))
+    exr("depth", "depth", "half zip", raw_depth, True, "zip", depth_err, ("Y",))
+
+    nrm = lambda f: f["normals"]  # noqa: E731
+    nrm_err = lambda f, a: float(np.abs(a - f["normals"]).max())  # noqa: E731
+    exr("normals", "normals", "float32 zip (before)", nrm, False, "zip", nrm_err)
+    for comp in ("zip", "piz", "zips"):
+        exr("normals", "normals", f"half {comp}", nrm, True, comp, nrm_err, default=comp == "zip")
+    exr("normals", "normals", "half dwaa (lossy)", nrm, True, "dwaa", nrm_err)
+
+    flw = lambda f: f["flow"]  # noqa: E731
+    flow_err = lambda f, a: float(np.abs(a - f["flow"]).max())  # noqa: E731
+    cands.append(("flow", ".flo float32 (before)", False, lambda f, p: write_flo(p, f["flow"]), read_flo, flow_err,
+                  ".flo"))
+    exr("flow", "flow", "float32 zip", flw, False, "zip", flow_err, ("R", "G"))
+    for comp in ("zip", "piz", "zips"):
+        exr("flow", "flow", f"half {comp}", flw, True, comp, flow_err, ("R", "G"), default=comp == "zip")
+    for lvl in (1, 3, 6, 9):
+        cands.append(("rgb", f"png level {lvl}", lvl == 3, lambda f, p, l=lvl: write_png8(p, f["rgb"], l), read_png,
+                      lambda f, a: float(np.abs(a.astype(int) - f["rgb"]).max()), ".png"))
+        cands.append(("rgb_noisy", f"png level {lvl}", lvl == 3, lambda f, p, l=lvl: write_png8(p, f["rgb_noisy"], l),
+                      read_png, lambda f, a: float(np.abs(a.astype(int) - f["rgb_noisy"]).max()), ".png"))
+        cands.append(("relative_depth", f"png16 level {lvl}", lvl == 3,
+                      lambda f, p, l=lvl: write_png16(p, f["relative_depth"], l), read_png,
+                      lambda f, a: float(np.abs(a.astype(int) - f["relative_depth"]).max()), ".png"))
+    seg = lambda f: (f["segmentation"] + 1).astype(np.uint16)  # noqa: E731
+    cands.append(("segmentation", "png16 level 3", True, lambda f, p: write_png16(p, seg(f), 3), read_png,
+                  lambda f, a: float(np.abs(a.astype(int) - seg(f)).max()), ".png"))
+    vld = lambda f: f["flow_valid"].astype(np.uint8) * 255  # noqa: E731
+    cands.append(("flow_valid", "png level 3", True, lambda f, p: write_png8(p, vld(f), 3), read_png,
+                  lambda f, a: float(np.abs(a.astype(int) - vld(f)).max()), ".png"))
+    from room_pipeline.render.raycast import write_point_cloud
+
+    for s in (1, 2, 4):
+        def w_pc(f, p, s=s):
+            keep = stride_mask(f["hit"], s)[f["hit"]]
+            write_point_cloud(p, {k: v[keep] for k, v in f.items() if k.startswith("point_cloud")})
+        cands.append(("point_cloud", f"ply stride {s}", False, w_pc, lambda p: read_ply(p)[0]["z"],
+                      lambda f, a, s=s: 0.0, ".ply"))
+    rows = []
+    for mod, label, default, write, read, err, ext in cands:
+        nbytes, wc, ww, rw, worst = [], [], [], [], 0.0
+        for k, f in enumerate(frames):
+            path = tmp / f"{mod}_{k}{ext}"
+            _, c, w = timed(write, f, path)
+            nbytes.append(path.stat().st_size)
+            wc.append(c)
+            ww.append(w)
+            a, _, r = timed(read, path)
+            rw.append(r)
+            worst = max(worst, err(f, a))
+            path.unlink()
+        rows.append({"modality": mod, "encoding": label, "default": default,
+                     "bytes_per_frame": int(np.mean(nbytes)), "write_cpu_ms": round(float(np.mean(wc)), 2),
+                     "write_wall_ms": round(float(np.mean(ww)), 2), "read_wall_ms": round(float(np.mean(rw)), 2),
+                     "max_error": worst})
+        print(f"  {mod:15s} {label:34s} {rows[-1]['bytes_per_frame']:>9d} B  write {rows[-1]['write_wall_ms']:7.2f} ms "
+              f"(cpu {rows[-1]['write_cpu_ms']:6.2f})  read {rows[-1]['read_wall_ms']:6.2f} ms  max err {worst:.3g}",
+              flush=True)
+    return rows
+
+
+# --------------------------------------------------------------------------- 3. throughput
+
+
+def bare_cast(scene, frames: list[int]) -> dict:
+    from room_pipeline.render.raycast import RaycastRenderer
+
+    r = RaycastRenderer(scene)
+    r._cast_rays(scene.poses[frames[0]], r._rays32)               # warm-up
+    c0, w0 = cpu_s(), time.perf_counter()
+    for i in frames:
+        r._cast_rays(scene.poses[i], r._rays32)["t_hit"].numpy()
+    return {"run": "bare Open3D cast (every pixel)", "frames": len(frames),
+            "wall_s": time.perf_counter() - w0, "cpu_s": cpu_s() - c0}
+
+
+def stage_path(scene, p, seq: Path, mods, storage: dict, frames: list[int], label: str, ev: float,
+               rss_every: int = 0) -> dict:
+    """The render stage's per-frame path (worker state, blocks, writer) over ``frames``."""
+    from room_pipeline.stages import render as rs
+
+    p2 = dataclasses.replace(p, modalities=tuple(mods), storage={**p.storage, **storage})
+    st = StorageParams.from_dict(p2.storage)
+    scene.film = dataclasses.replace(scene.film, exposure_ev=ev)
+    src = np.arange(len(scene.poses))
+    state = rs._frame_worker(scene, p2, str(seq), src, scene.timestamps, scene.poses, 0, None, 0)
+    for f in rs.FOLDERS.values():
+        (seq / f).mkdir(parents=True, exist_ok=True)
+    rs._render_block(state, (frames[0], frames[0] + 1))           # warm-up (normal tables, caches)
+    rss = []
+    c0, w0 = cpu_s(), time.perf_counter()
+    start, stop = frames[0], frames[-1] + 1
+    for b0 in range(start, stop, st.write_block):
+        rs._render_block(state, (b0, min(b0 + st.write_block, stop)))
+        if rss_every and (b0 - start) % rss_every < st.write_block:
+            rss.append((b0 - start, round(rss_mb(), 1)))
+    wall, cpu = time.perf_counter() - w0, cpu_s() - c0
+    state["writer"].close()
+    nbytes = sum(f.stat().st_size for f in seq.rglob("frame_*") if f.is_file()) + \
+        sum(f.stat().st_size for f in seq.rglob("valid_*") if f.is_file())
+    shutil.rmtree(seq)
+    out = {"run": label, "frames": len(frames), "wall_s": wall, "cpu_s": cpu,
+           "bytes_per_frame": nbytes / (len(frames) + 1)}
+    if rss:
+        out["rss_mb"] = rss
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(ROOT / "data" / "output"))
+    ap.add_argument("--sample", type=int, default=12, help="frames for the codec table")
+    ap.add_argument("--frames", type=int, default=80, help="consecutive frames for the throughput runs")
+    ap.add_argument("--memory-frames", type=int, default=500)
+    ap.add_argument("--tmp", default=None, help="scratch folder (default: a temporary folder)")
+    ap.add_argument("--memory-only", action="store_true",
+                    help="only part 4; results in write_throughput_memory.{md,json}")
+    args = ap.parse_args()
+    if args.memory_only:
+        memory_only(args)
+        return
+
+    from room_pipeline.noise.profile import NoiseProfile
+    from room_pipeline.noise.synthesize import add_noise
+    from room_pipeline.render.raycast import RaycastRenderer
+    from room_pipeline.stages.noise import NoiseParams, frame_seed, resolve_profile
+    from room_pipeline.stages.render import _Renderers
+
+    load0 = os.getloadavg()
+    mesh, labels, poses, ts, info = load_inputs(args)
+    scene, p = make_scene(mesh, labels, poses, ts)
+    n = len(poses)
+    print(f"inputs: {info}", flush=True)
+    ev = RaycastRenderer(scene).exposure_ev
+    scene.film = dataclasses.replace(scene.film, exposure_ev=ev)
+    tmp = Path(args.tmp or tempfile.mkdtemp(prefix="room_write_"))
+    tmp.mkdir(parents=True, exist_ok=True)
+
+    # 1. codecs on sampled frames (every modality from one render, one cast per frame + the next for flow)
+    rend = _Renderers(scene, p)
+    nprm = NoiseParams()
+    profile = NoiseProfile.load(resolve_profile(nprm.profile))
+    sample = np.unique(np.linspace(0, n - 2, args.sample).round().astype(int)).tolist()
+    frames = []
+    for i in sample:
+        out = rend.render(i, set(DEFAULT_MODS) | {"point_cloud"})
+        out["depth"] = out["depth"].copy()
+        out["rgb_noisy"] = add_noise(out["rgb"], profile, nprm.beta, frame_seed(nprm.seed, "sequence_000", i))
+        frames.append(out)
+    print(f"codec table over frames {sample}", flush=True)
+    rows = codec_table(frames, tmp)
+    del frames
+
+    # 2. bytes per default sequence (from the sample)
+    chosen = {r["modality"]: r for r in rows if r["default"]}
+    per_frame = {m: chosen[m]["bytes_per_frame"] for m in chosen}
+    before = {"depth": "float32 zip", "normals": "float32 zip (before)", "flow": ".flo float32 (before)"}
+    old = dict(per_frame)
+    for m, lab in before.items():
+        old[m] = next(r["bytes_per_frame"] for r in rows if r["modality"] == m and r["encoding"] == lab)
+    seq_bytes, old_bytes = SEQ_FRAMES * sum(per_frame.values()), SEQ_FRAMES * sum(old.values())
+
+    # 3. throughput side by side
+    start = min(max(0, n // 3), max(0, n - args.frames - 2))
+    tframes = list(range(start, min(n - 1, start + args.frames)))
+    runs = [bare_cast(scene, tframes)]
+    seq = tmp / "seq"
+    runs.append(stage_path(scene, p, seq, GEOMETRIC, {}, tframes, "geometric, default storage (threads 2)", ev))
+    runs.append(stage_path(scene, p, seq, GEOMETRIC, {"write_threads": 0}, tframes,
+                           "geometric, default storage, writer threads off", ev))
+    runs.append(stage_path(scene, p, seq, GEOMETRIC, OLD_STORAGE, tframes,
+                           "geometric, previous storage (float32 EXR, .flo, no threads)", ev))
+    runs.append(stage_path(scene, p, seq, DEFAULT_MODS, {}, tframes, "every default modality, default storage", ev))
+    for r in runs:
+        r["fps"] = r["frames"] / r["wall_s"]
+        r["cpu_ms_per_frame"] = 1e3 * r["cpu_s"] / r["frames"]
+        r["wall_ms_per_frame"] = 1e3 * r["wall_s"] / r["frames"]
+    bare_fps = runs[0]["fps"]
+    bare_cpu = runs[0]["cpu_ms_per_frame"]
+    for r in runs:
+        r["fraction_of_bare_wall"] = r["fps"] / bare_fps
+        r["fraction_of_bare_cpu"] = bare_cpu / r["cpu_ms_per_frame"]
+
+    # 4. memory over many frames (poses repeated)
+    mem = None
+    if args.memory_frames > 0:
+        reps = int(np.ceil((args.memory_frames + 1) / n))
+        big, _ = make_scene(mesh, labels, np.tile(poses, (reps, 1, 1)), np.arange(n * reps) * 0.1)
+        mem = stage_path(big, p, seq, DEFAULT_MODS, {}, list(range(args.memory_frames)),
+                         f"memory: every default modality over {args.memory_frames} frames", ev, rss_every=25)
+    load1 = os.getloadavg()
+    shutil.rmtree(tmp, ignore_errors=True)
+
+    res = {"inputs": info, "camera": scene.camera.to_dict(), "sample_frames": sample, "codecs": rows,
+           "default_bytes_per_frame": per_frame, "sequence_frames": SEQ_FRAMES,
+           "default_sequence_bytes": seq_bytes, "previous_sequence_bytes": old_bytes,
+           "throughput_frames": [tframes[0], tframes[-1]], "throughput": runs, "memory": mem,
+           "load_average_before": load0, "load_average_after": load1, "cpu_count": os.cpu_count(),
+           "machine": platform.platform(),
+           "command": "python benchmarks/write_throughput.py " + " ".join(sys.argv[1:])}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / "write_throughput.json", res)
+    (RESULTS / "write_throughput.md").write_text(markdown(res))
+    print(markdown(res))
+
+
+def memory_only(args) -> None:
+    from room_pipeline.render.raycast import RaycastRenderer
+
+    load0 = os.getloadavg()
+    mesh, labels, poses, ts, info = load_inputs(args)
+    n = len(poses)
+    reps = int(np.ceil((args.memory_frames + 1) / n))
+    big, p = make_scene(mesh, labels, np.tile(poses, (reps, 1, 1)), np.arange(n * reps) * 0.1)
+    ev = RaycastRenderer(big).exposure_ev
+    tmp = Path(args.tmp or tempfile.mkdtemp(prefix="room_write_mem_"))
+    m = stage_path(big, p, tmp / "seq", DEFAULT_MODS, {}, list(range(args.memory_frames)),
+                   f"memory: every default modality over {args.memory_frames} frames", ev, rss_every=25)
+    shutil.rmtree(tmp, ignore_errors=True)
+    res = {"inputs": info, "memory": m, "load_average_before": load0, "load_average_after": os.getloadavg(),
+           "command": "python benchmarks/write_throughput.py " + " ".join(sys.argv[1:])}
+    rss = m["rss_mb"]
+    vals = [v for _, v in rss]
+    md = "\n".join([f"# Render-stage memory over {m['frames']} frames", "", f"`{res['command']}`; inputs "
+                    f"{info['source']} (poses repeated past {n}); load average {load0[0]:.2f} -> "
+                    f"{res['load_average_after'][0]:.2f}.", "",
+                    f"Resident set size every 25 frames (MB): first {vals[0]}, last {vals[-1]}, max {max(vals)}, "
+                    f"last - first {vals[-1] - vals[0]:+.1f}; {m['frames'] / m['wall_s']:.2f} frames/s wall, "
+                    f"{1e3 * m['cpu_s'] / m['frames']:.1f} CPU ms/frame.", "",
+                    "frame: MB  " + ", ".join(f"{k}: {v}" for k, v in rss)]) + "\n"
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / "write_throughput_memory.json", res)
+    (RESULTS / "write_throughput_memory.md").write_text(md)
+    print(md)
+
+
+def markdown(res: dict) -> str:
+    i = res["inputs"]
+    L = [f"# Dataset storage: bytes, codecs, write throughput",
+         "",
+         f"`{res['command']}`.  Inputs: {i['source']} ({i['faces']} faces, {i['frames']} poses); camera "
+         f"{res['camera']['width']}x{res['camera']['height']}.  Load average {res['load_average_before'][0]:.2f} "
+         f"-> {res['load_average_after'][0]:.2f} on {res['cpu_count']} cores shared with other users: wall times "
+         f"include their load, CPU times are this process's (all its threads).",
+         "",
+         f"## Codecs (mean over {len(res['sample_frames'])} frames spread over the sequence; ** = default)",
+         "",
+         "Errors against the float32 render: depth in mm, normals per component, flow in px, PNG in levels.",
+         "",
+         "| modality | encoding | bytes/frame | write ms (wall) | write ms (CPU) | read ms | max error |",
+         "|---|---|---|---|---|---|---|"]
+    for r in res["codecs"]:
+        mark = "**" if r["default"] else ""
+        L.append(f"| {r['modality']} | {mark}{r['encoding']}{mark} | {r['bytes_per_frame']:,} | {r['write_wall_ms']} "
+                 f"| {r['write_cpu_ms']} | {r['read_wall_ms']} | {r['max_error']:.3g} |")
+    pf = res["default_bytes_per_frame"]
+    L += ["", f"## Bytes per {res['sequence_frames']}-frame default sequence (extrapolated from the sample)", "",
+          "| modality | bytes/frame | per sequence (MB) |", "|---|---|---|"]
+    for m, b in pf.items():
+        L.append(f"| {m} | {b:,} | {b * res['sequence_frames'] / 1e6:.1f} |")
+    L.append(f"| **total** | {sum(pf.values()):,} | **{res['default_sequence_bytes'] / 1e6:.1f}** |")
+    L += ["", f"Previous storage (float32 depth and normals EXR, .flo): "
+              f"{res['previous_sequence_bytes'] / 1e6:.1f} MB per sequence.  Point clouds are built on demand "
+              f"(0 bytes); a compact PLY would add the point_cloud row per frame.", ""]
+    t0, t1 = res["throughput_frames"]
+    L += [f"## Write throughput, side by side (frames {t0}..{t1}, in order)", "",
+          "| run | frames/s (wall) | wall ms/frame | CPU ms/frame | vs bare cast (wall) | vs bare cast (CPU) | bytes/frame |",
+          "|---|---|---|---|---|---|---|"]
+    for r in res["throughput"]:
+        b = f"{int(r['bytes_per_frame']):,}" if "bytes_per_frame" in r else ""
+        L.append(f"| {r['run']} | {r['fps']:.2f} | {r['wall_ms_per_frame']:.1f} | {r['cpu_ms_per_frame']:.1f} | "
+                 f"{100 * r['fraction_of_bare_wall']:.0f} % | {100 * r['fraction_of_bare_cpu']:.0f} % | {b} |")
+    m = res["memory"]
+    if m:
+        rss = m["rss_mb"]
+        vals = [v for _, v in rss]
+        L += ["", f"## Memory ({m['run']})", "",
+              f"Resident set size every 25 frames (MB): first {vals[0]}, after frame {rss[len(rss) // 2][0]} "
+              f"{rss[len(rss) // 2][1]}, last {vals[-1]}, max {max(vals)}; "
+              f"{m['frames'] / m['wall_s']:.2f} frames/s, {1e3 * m['cpu_s'] / m['frames']:.1f} CPU ms/frame.", "",
+              "frame: MB  " + ", ".join(f"{k}: {v}" for k, v in rss)]
+    return "\n".join(L) + "\n"
+
+
+if __name__ == "__main__":
+    main()
