@@ -69,7 +69,8 @@ STAGES = {
               [f"{Q}/{S}/rgb_noisy", f"{Q}/{S}/metadata/noise.json"], f"{Q}/metrics/noise_{S}.json"),
     # reads rgb_noisy (evaluate.pose.images: noisy) or rgb
     "evaluate_pose": (MATRIX, [f"{Q}/{S}/rgb", f"{Q}/{S}/rgb_noisy", f"{Q}/{S}/calibration",
-                               f"{Q}/{S}/metadata/render.json"], ["evaluate.pose"],
+                               f"{Q}/{S}/metadata/render.json", f"{Q}/anatomy/centreline_graph.json"],
+                      ["evaluate.pose"],
                       [f"{E}/pose.json", f"{E}/pose_errors.csv"], f"{Q}/metrics/evaluate_pose_{S}.json"),
     # once, for depth.cnn.checkpoint_patient; trains on every configured sequence of it (the list is expanded from params.yaml's
     # `sequences` when this file is generated: rerun this script after changing it; `sequences` is a param)

@@ -58,6 +58,7 @@ def write_sequence(root, n: int = 3, size: int = 48, blank: bool = False):
 
 def depth_cfg(tmp_path, **depth):
     base = OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "depth" / "default.yaml"))
+    base["input"] = "rgb"                   # write_sequence renders clean frames only (the default reads rgb_noisy)
     base.update(depth)
     return OmegaConf.create({"output_dir": str(tmp_path / "out"), "sequences": ["sequence_000"],
                              "phantoms": {"patient_000": {"seed": 0}},
@@ -451,11 +452,21 @@ def test_train_depth_stage_contract_and_evaluate_uses_it(tmp_path):
     assert set(tr["checkpoints"]) == {"pretrained", "finetuned"} and "before" in tr["definition"]
     model_dir = tmp_path / "out" / "patient_000" / "depth_model"
     assert {p.name for p in model_dir.iterdir()} == {"pretrained.pt", "finetuned.pt", "training.json",
-                                                     "training_log.csv"}
+                                                     "training_log.csv", "train_mean_depth.npy"}
+    assert np.load(model_dir / "train_mean_depth.npy").shape == (32, 32)
+    cfg = depth_cfg(tmp_path, methods=["cnn", "cnn_pretrained", "train_mean", "constant", "tube_prior"], **TINY)
+    # the training patient: rows fitted on it are never scored there (no in-sample row)
     evaluate_depth.run(cfg, "patient_000/sequence_000")
     rows = json.loads((tmp_path / "out" / "evaluation" / "patient_000" / "sequence_000" / "depth.json").read_text())["methods"]
+    assert not rows["cnn"]["available"] and "in-sample" in rows["cnn"]["reason"] and rows["cnn"]["AbsRel"] is None
+    assert not rows["train_mean"]["available"] and rows["cnn_pretrained"]["available"]
+    # another patient: every row is scored
+    write_sequence(tmp_path / "out" / "patient_001" / "sequence_000", n=2, size=32)
+    evaluate_depth.run(cfg, "patient_001/sequence_000")
+    rows = json.loads((tmp_path / "out" / "evaluation" / "patient_001" / "sequence_000" / "depth.json").read_text())["methods"]
     assert rows["cnn"]["available"] and rows["cnn_pretrained"]["available"] and rows["cnn"]["scaling"] == "median"
-    assert math.isfinite(rows["cnn"]["AbsRel"])
+    assert math.isfinite(rows["cnn"]["AbsRel"]) and rows["train_mean"]["available"]
+    assert all(not r["oracle"] for r in rows.values())
 
 
 def test_train_depth_without_torch(tmp_path, monkeypatch):

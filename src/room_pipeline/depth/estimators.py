@@ -13,7 +13,10 @@ resizes it to the ground truth's (bilinear) -- any other shape mismatch is an
 error (:func:`room_pipeline.depth.metrics.fit_to_shape`).
 
 Names (``depth.methods``)
-    ``physics``            inverse-square shading baseline, metric (:mod:`.physics`)
+    ``physics``            inverse-square shading baseline, metric (:mod:`.physics`); an ORACLE: it reads the
+                           renderer's light power, albedo and exposure from metadata/render.json
+    ``shading_sfs``        weight-free co-located-light shading + shape from shading, image only (:mod:`.baselines`)
+    ``constant``, ``train_mean``, ``tube_prior``   image-blind trivial baselines (:mod:`.baselines`)
     ``cnn``                the small U-Net fine-tuned on phantom sequences (:mod:`.cnn`)
     ``cnn_pretrained``     the same network before fine-tuning (Table III's "before")
     any key of ``depth.hf``        a Hugging Face ``transformers`` depth model from a local folder (:mod:`.hf`)
@@ -118,6 +121,7 @@ class DepthParams:
     train: Any = None          # cnn.TrainParams
     hf: Mapping[str, Any] | None = None
     external: Mapping[str, Any] | None = None
+    shading_sfs: Any = None    # baselines.ShadingParams
 
     @property
     def valid_range_m(self) -> tuple[float, float]:
@@ -128,14 +132,17 @@ class DepthParams:
         from .cnn import CNNParams, TrainParams
 
         d = dict(d or {})
-        nested = {k: d.pop(k, None) for k in ("physics", "cnn", "train", "hf", "external")}
+        from .baselines import ShadingParams
+
+        nested = {k: d.pop(k, None) for k in ("physics", "cnn", "train", "hf", "external", "shading_sfs")}
         p = params_from_dict(cls, d, "depth")
         hf = dict(nested["hf"] or {})
         ext = dict(nested["external"] or {})
         p = dataclasses.replace(
             p, physics=params_from_dict(PhysicsParams, nested["physics"], "depth.physics"),
             cnn=params_from_dict(CNNParams, nested["cnn"], "depth.cnn"),
-            train=TrainParams.from_dict(nested["train"]), hf=hf, external=ext)
+            train=TrainParams.from_dict(nested["train"]), hf=hf, external=ext,
+            shading_sfs=params_from_dict(ShadingParams, nested["shading_sfs"], "depth.shading_sfs"))
         lo, hi = (float(x) for x in p.valid_range_mm)
         if not 0 < lo < hi:
             raise ConfigError(f"depth.valid_range_mm must be [lo, hi] with 0 < lo < hi, got {list(p.valid_range_mm)}")
@@ -197,12 +204,37 @@ def _cnn(which: str) -> Callable[[str, DepthParams, SequenceInfo], Estimator]:
     return make
 
 
+def _baseline(kind: str) -> Callable[[str, DepthParams, SequenceInfo], Estimator]:
+    def make(name: str, params: DepthParams, info: SequenceInfo) -> Estimator:
+        from . import baselines as bl
+
+        if kind == "constant":
+            return bl.ConstantDepth(name)
+        if kind == "tube_prior":
+            return bl.TubePrior(name)
+        if kind == "shading_sfs":
+            return bl.ShadingSfS(name, params.shading_sfs or bl.ShadingParams())
+        if info.output_dir is None:
+            raise BackendUnavailable("train_mean: no output_dir to find the training mean in")
+        return bl.TrainMean(name, Path(info.output_dir) / params.cnn.checkpoint_patient / "depth_model"
+                            / bl.TRAIN_MEAN_FILE)
+    return make
+
+
 #: built-in name -> factory(name, params, info)
 BUILTIN: dict[str, Callable[[str, DepthParams, SequenceInfo], Estimator]] = {
     "physics": _physics,
     "cnn": _cnn("finetuned"),
     "cnn_pretrained": _cnn("pretrained"),
+    "shading_sfs": _baseline("shading_sfs"),
+    "constant": _baseline("constant"),
+    "train_mean": _baseline("train_mean"),
+    "tube_prior": _baseline("tube_prior"),
 }
+#: rows that read information a real endoscope image does not carry (the renderer's light model)
+ORACLES = ("physics",)
+#: rows fitted on the training patient (``depth.cnn.checkpoint_patient``): never scored on that patient
+TRAINED_ON_CHECKPOINT_PATIENT = ("cnn", "train_mean")
 
 
 def create(name: str, params: DepthParams, info: SequenceInfo) -> Estimator:

@@ -222,3 +222,30 @@ def per_frame_errors(poses_gt: np.ndarray, poses_est: np.ndarray, registered: np
         step_r[k], step_t[k] = r[0], t[0]
     return {"registered": reg, "position_error_mm": pos, "orientation_error_deg": ori,
             "step_rotation_error_deg": step_r, "step_translation_error_deg": step_t}
+
+
+def segment_scores(poses_gt: np.ndarray, poses_est: np.ndarray, registered: np.ndarray | None,
+                   labels: list[str], tau_deg: float = 5.0, auc_max_deg: int = 30) -> dict:
+    """RRA / RTA / AUC per route segment: over the pairs i < j whose two frames carry the same label; plus
+    ``bifurcations``, pooling the pairs inside any label that starts with ``bifurcation``.  Each entry also
+    has ``n_frames``, ``n_pairs`` and the registration rate of its frames."""
+    lab = np.asarray(labels, dtype=object)
+    if len(lab) != len(_as_poses(poses_gt, "ground-truth poses")):
+        raise ValueError(f"{len(lab)} labels for {len(poses_gt)} frames")
+    i, j, rot, trans = relative_errors(poses_gt, poses_est, registered)
+    reg = registered_mask(poses_est, registered)
+    same = lab[i] == lab[j]
+    tau = f"{tau_deg:g}"
+    groups = {str(n): same & (lab[i] == n) for n in dict.fromkeys(labels)}
+    bif = same & np.array([str(x).startswith("bifurcation") for x in lab[i]], dtype=bool)
+    if bif.any():
+        groups["bifurcations"] = bif
+    out = {}
+    for name, m in groups.items():
+        frames = (lab == name) if name != "bifurcations" else np.array(
+            [str(x).startswith("bifurcation") for x in lab], dtype=bool)
+        out[name] = {f"RRA@{tau}": accuracy_at(rot[m], tau_deg), f"RTA@{tau}": accuracy_at(trans[m], tau_deg),
+                     f"AUC@{int(auc_max_deg)}": auc(rot[m], trans[m], auc_max_deg),
+                     "registration_rate": float(reg[frames].mean()) if frames.any() else 0.0,
+                     "n_frames": int(frames.sum()), "n_pairs": int(m.sum())}
+    return out

@@ -37,8 +37,16 @@ DASH = "-"
 
 #: (key in the records, header, kind): kind "pct" = fraction printed as %, "num" = plain, "time" = seconds
 POSE_COLUMNS = (("RRA@5", "RRA@5 (%)", "pct"), ("RTA@5", "RTA@5 (%)", "pct"), ("AUC@30", "AUC@30 (%)", "pct"),
+                ("seg:trachea:AUC@30", "AUC@30 trachea (%)", "pct"),
+                ("seg:bifurcations:AUC@30", "AUC@30 bifurcations (%)", "pct"),
+                ("seg:distal:AUC@30", "AUC@30 distal (%)", "pct"),
                 ("registration_rate", "Registered (%)", "pct"), ("ate_rmse_mm", "ATE (mm)", "num"),
-                ("seconds_per_frame", "Time (s/frame)", "time"))
+                ("seconds_per_frame", "Time (s/frame)", "time"), ("cpu_seconds_per_frame", "CPU (s/frame)", "time"))
+#: the scores a method must beat its trivial baselines on: key -> +1 (higher is better) / -1 (lower is better)
+POSE_BETTER = {"RRA@5": 1, "RTA@5": 1, "AUC@30": 1}
+DEPTH_BETTER = {"AbsRel": -1, "delta1": 1}
+POSE_BASELINES = ("identity", "constant_forward")
+DEPTH_BASELINES = ("constant", "train_mean", "tube_prior")
 DEPTH_COLUMNS = (("L1_mm", "L1 (mm)", "num"), ("AbsRel", "AbsRel", "num"), ("RMSE_mm", "RMSE (mm)", "num"),
                  ("delta1", "delta1 (%)", "pct"), ("seconds_per_frame", "Time (s/frame)", "time"))
 FINETUNE_COLUMNS = DEPTH_COLUMNS[:4]
@@ -119,9 +127,33 @@ def fmt(v: Any, kind: str, digits: int) -> str:
 
 
 def fmt_paper(v: Any, digits: int) -> str:
-    """A published value exactly as recorded (no unit conversion), or 'n/r'."""
+    """A published value exactly as printed in the paper (a string, no unit conversion), or 'n/r'."""
+    if isinstance(v, str):
+        return v
     f = _finite(v)
     return paper.NOT_RETRIEVED if f is None else f"{f:.{max(digits, 2)}f}"
+
+
+def flatten_segments(rec: Mapping[str, Any]) -> dict:
+    """A pose record with its per-segment scores lifted to ``seg:<segment>:<metric>`` keys."""
+    out = dict(rec)
+    for seg, m in (rec.get("segments") or {}).items():
+        for k, v in (m or {}).items():
+            out[f"seg:{seg}:{k}"] = v
+    return out
+
+
+def beats(mean: Mapping[str, Any], base: Mapping[str, Mapping[str, Any]], better: Mapping[str, int]) -> list[str]:
+    """The '<metric> (<baseline>)' where ``mean`` does not strictly beat a trivial baseline (empty: beats all)."""
+    fails = []
+    for b, bm in base.items():
+        for k, sign in better.items():
+            v, w = _finite(mean.get(k)), _finite(bm.get(k))
+            if w is None:
+                continue
+            if v is None or sign * (v - w) <= 0:
+                fails.append(f"{k} ({b})")
+    return fails
 
 
 def mean_records(records: Iterable[Mapping[str, Any]], keys: Sequence[str]) -> dict:
@@ -165,41 +197,69 @@ def _status(a: Mapping[str, Any]) -> str:
 
 
 def _method_table(name: str, title: str, docs: Sequence[Mapping[str, Any]], columns, paper_cols: Sequence[str],
-                  digits: int, order: Sequence[str], unit_label: str, missing: str) -> Table:
-    keys = [k for k, _, _ in columns]
+                  digits: int, order: Sequence[str], unit_label: str, missing: str,
+                  baselines: Sequence[str] = (), better: Mapping[str, int] | None = None,
+                  labels: Mapping[str, str] | None = None) -> Table:
+    """One row per method (mean over sequences); rows in ``baselines`` are labelled trivial baselines and every
+    other available row says in "Beats baselines" whether it strictly beats all of them on ``better``."""
+    keys = [k for k, _, _ in columns] + [k for k in (better or {}) if k not in [c[0] for c in columns]]
     header = (["Method"] + [h for _, h, _ in columns] + [unit_label]
-              + [f"paper (published) {c}" for c in paper_cols] + ["Status"])
+              + [f"paper (published) {c}" for c in paper_cols] + ["Beats trivial baselines", "Status"])
     rows, numbers = [], {}
     agg = aggregate_methods(docs, keys, order)
+    base = {b: agg[b]["mean"] for b in baselines if b in agg and agg[b]["available"]}
     for m, a in agg.items():
         cells = [fmt(a["mean"][k], kind, digits) if a["available"] else DASH for k, _, kind in columns]
-        rows.append([m] + cells + [str(a["available"])]
-                    + [fmt_paper(paper.published(name, m, c), digits) for c in paper_cols] + [_status(a)])
+        if m in baselines:
+            verdict = "(trivial baseline)"
+        elif not a["available"] or not base or not better:
+            verdict = DASH
+        else:
+            fails = beats(a["mean"], base, better)
+            verdict = "yes" if not fails else "NO: not better on " + ", ".join(fails)
+        label = (labels or {}).get(m, m)
+        rows.append([label] + cells + [str(a["available"])]
+                    + [fmt_paper(paper.published(name, m, c), digits) for c in paper_cols] + [verdict, _status(a)])
         numbers[m] = {**{k: _finite(a["mean"][k]) for k in keys}, unit_label.lower(): a["available"],
-                      "available": a["available"] > 0}
-    for m in sorted(paper.TABLES[name]["rows"]):
-        if m not in agg:
-            rows.append([m] + [DASH] * len(columns) + ["0"]
-                        + [fmt_paper(paper.published(name, m, c), digits) for c in paper_cols]
-                        + ["not run here (paper only)"])
-    if not rows:
-        rows.append(["(none)"] + [DASH] * len(columns) + ["0"] + [paper.NOT_RETRIEVED] * len(paper_cols)
-                    + [f"not run: {missing}"])
+                      "available": a["available"] > 0, "trivial_baseline": m in baselines,
+                      "beats_trivial_baselines": (None if m in baselines or not base or not a["available"]
+                                                  else verdict == "yes")}
+    for m in paper.paper_only_rows(name):
+        rows.append([f"{m} (paper)"] + [DASH] * len(columns) + ["0"]
+                    + [fmt_paper(paper.TABLES[name]["rows"][m].get(c), digits) for c in paper_cols]
+                    + [DASH, "not run here (paper only)"])
+    if not agg:
+        rows.insert(0, ["(none)"] + [DASH] * len(columns) + ["0"] + [paper.NOT_RETRIEVED] * len(paper_cols)
+                    + [DASH, f"not run: {missing}"])
     return Table(name, title, header, rows, [], numbers)
 
 
 def pose_table(docs: Sequence[Mapping[str, Any]], digits: int = 2, order: Sequence[str] = (),
                missing: str = "no evaluation/pose.json found") -> Table:
     """Table I: method x RRA@5, RTA@5, AUC@30 (+ registration, ATE, time), mean over sequences."""
+    docs = [{**d, "methods": {m: flatten_segments(r) for m, r in (d.get("methods") or {}).items()}} for d in docs]
     t = _method_table("table_1_pose", "Table I: multi-view pose estimation on ROOM sequences", docs, POSE_COLUMNS,
-                      paper.TABLES["table_1_pose"]["columns"], digits, order, "Sequences", missing)
-    t.notes = [f"Mean over the sequences where the method ran ({len(docs)} evaluated). Over all frame pairs i<j: "
+                      paper.TABLES["table_1_pose"]["columns"], digits, order, "Sequences", missing,
+                      POSE_BASELINES, POSE_BETTER)
+    t.notes = [f"Mean over the sequences where the method ran ({len(docs)} evaluated), each scored over its whole "
+               "route (every frame after evaluate.pose.frame_stride, bifurcations and bends included). "
+               "Over all frame pairs i<j: "
                "RRA@5 / RTA@5 = % of pairs with relative-rotation / relative-translation-direction error under "
                "5 deg (translation sign folded, min(a, 180-a)); AUC@30 = mean over 1..30 deg thresholds of the % "
                "of pairs whose larger error is under the threshold; pairs with an unregistered frame count as "
                "failures. Units: % of pairs (pose.json stores fractions in [0, 1]).",
+               "Per segment (AUC@30 trachea / bifurcations / distal): pairs with both frames in the same segment "
+               "(bifurcation region = camera within 2 parent lumen radii of a branch point; evaluate/route_segments.py); "
+               "pose.json has RRA/RTA/AUC for every segment and every bifurcation region.",
+               "identity and constant_forward are image-blind trivial baselines (identity: no motion; constant "
+               "forward: identity rotation, constant step along the first optical axis). 'Beats trivial baselines' "
+               "says whether a method's RRA@5, RTA@5 and AUC@30 all strictly exceed both baselines'; NO marks a "
+               "row whose score the trivial answer matches.",
                "Registered = % of frames with a pose; ATE = RMS camera-centre error after Sim(3) alignment of the "
-               "registered frames, mm; Time = wall time per input frame on the machine that ran the stage.",
+               "registered frames, mm; Time = wall time per input frame on the machine that ran the stage (polluted "
+               "when the machine is shared), CPU = process CPU time per frame.",
+               "DUSt3R and VGGT are not run: their code and weights cannot be installed on this project's machines "
+               "(no network), so no adapter could be run or checked; their rows are the paper's only.",
                "The paper's Table I and its text disagree on the unit of RTA (0.07 vs \"0.07%\"); published "
                "values are shown exactly as printed, without conversion.",
                paper.NOTE]
@@ -209,16 +269,31 @@ def pose_table(docs: Sequence[Mapping[str, Any]], digits: int = 2, order: Sequen
 def depth_table(docs: Sequence[Mapping[str, Any]], digits: int = 2, order: Sequence[str] = (),
                 missing: str = "no evaluation/depth.json found (depth evaluation not run)") -> Table:
     """Table II: method x L1, AbsRel, RMSE, delta1 (+ time), mean over sequences."""
+    labels = {}
+    for d in docs:
+        for m, r in (d.get("methods") or {}).items():
+            if r.get("oracle"):
+                labels[m] = f"{m} (ORACLE: reads the renderer's light model)"
     t = _method_table("table_2_depth", "Table II: monocular depth estimation on ROOM sequences", docs,
-                      DEPTH_COLUMNS, paper.TABLES["table_2_depth"]["columns"], digits, order, "Sequences", missing)
-    t.notes = [f"Mean over the sequences where the method ran ({len(docs)} evaluated); L1 and RMSE in mm, AbsRel "
-               "a ratio, delta1 = % of pixels with max(d/d*, d*/d) < 1.25; Time = wall time per frame.",
+                      DEPTH_COLUMNS, paper.TABLES["table_2_depth"]["columns"], digits, order, "Sequences", missing,
+                      DEPTH_BASELINES, DEPTH_BETTER, labels)
+    t.notes = [f"Mean over the sequences where the method ran ({len(docs)} evaluated); only frames the method never "
+               "trained on: rows trained on a sequence's patient (cnn, train_mean on the training patient) are not "
+               "scored there (status says so). L1 and RMSE in mm, AbsRel a ratio, delta1 = % of pixels with "
+               "max(d/d*, d*/d) < 1.25; Time = wall time per frame. Input images as in depth.input (default: noisy RGB).",
+               "constant, train_mean (mean ground-truth depth image of the training patient's frames) and tube_prior "
+               "(depth ~ 1/(image radius) of a straight tube seen along its axis) are image-blind trivial baselines, "
+               "median-scaled like every relative row; 'Beats trivial baselines' requires a lower AbsRel and a higher "
+               "delta1 than all of them.",
+               "ORACLE rows read the renderer's light power, material albedo and exposure from metadata/render.json: "
+               "information no real endoscope image carries; shading_sfs is the weight-free baseline that does not.",
                paper.NOTE]
     return t
 
 
 def finetune_table(docs: Sequence[Mapping[str, Any]], digits: int = 2,
-                   missing: str = "no metrics/depth_finetune.json found (fine-tuning not run)") -> Table:
+                   missing: str = "no metrics/depth_finetune.json found (fine-tuning not run)",
+                   extra_notes: Sequence[str] | None = None) -> Table:
     """Table III: dataset x (before, after fine-tuning) x L1, AbsRel, RMSE, delta1, mean over patients."""
     name = "table_3_finetune"
     keys = [k for k, _, _ in FINETUNE_COLUMNS]
@@ -246,9 +321,18 @@ def finetune_table(docs: Sequence[Mapping[str, Any]], digits: int = 2,
     if not rows:
         rows.append(["(none)", DASH] + [DASH] * len(FINETUNE_COLUMNS) + ["0"] + [paper.NOT_RETRIEVED] * len(pcols)
                     + [f"not run: {missing}"])
+    for m in paper.paper_only_rows(name):
+        rows.append(["Visentini-Scarzanella 2017 phantom (paper)", m] + [DASH] * len(FINETUNE_COLUMNS) + ["0"]
+                    + [fmt_paper(paper.TABLES[name]["rows"][m].get(c), digits) for c in pcols]
+                    + ["not run here (paper only)"])
     notes = ["Each row: mean over the patients in its Patients column (phantom_held_out, simcol: the training "
              "patient's train_depth record; other_anatomy: evaluate_depth of its two checkpoints on each other "
-             "patient, rows cnn_pretrained and cnn); all median-scaled per sequence; units as in Table II.",
+             "patient, rows cnn_pretrained and cnn); all median-scaled per sequence; units as in Table II; "
+             "inputs as depth.input (default noisy RGB; SimCol frames are used as published).",
+             "Data the generator did not make: simcol = every RGB-D pair in ../shared/data (10 SimCol3D "
+             "colonoscopy frames, the only external depth pairs available offline); the paper's external set "
+             "(Visentini-Scarzanella 2017 phantom) is not available here, so its rows are the paper's only.",
+             *(extra_notes or []),
              paper.NOTE]
     return Table(name, "Table III: monocular depth before and after fine-tuning on ROOM data", header, rows, notes,
                  numbers, text_columns=2)

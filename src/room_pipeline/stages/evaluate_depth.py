@@ -27,7 +27,8 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from ..config.compose import section
-from ..depth.estimators import DepthParams, SequenceInfo, evaluate, sequence_samples, try_create
+from ..depth.estimators import (ORACLES, TRAINED_ON_CHECKPOINT_PATIENT, DepthParams, SequenceInfo, evaluate,
+                                sequence_samples, try_create)
 from ..depth.metrics import METRIC_KEYS, UNITS
 from ..io.atomic import write_json, write_text
 from .common import StageTimer, _finite, metadata, patient_paths, read_json, round_floats, write_metrics
@@ -89,6 +90,10 @@ def run(cfg: DictConfig, key: str) -> dict:
                             renderer=renderer, output_dir=Path(cfg.output_dir))
         estimators, unavailable, described = {}, {}, {}
         for name in p.methods:
+            if name in TRAINED_ON_CHECKPOINT_PATIENT and patient == p.cnn.checkpoint_patient:
+                unavailable[name] = (f"in-sample: fitted on {patient}'s frames (depth.cnn.checkpoint_patient), so "
+                                     "not scored on them (Table II scores only data never trained on)")
+                continue
             est, reason = try_create(name, p, info)
             if est is None:
                 unavailable[name] = reason
@@ -102,20 +107,18 @@ def run(cfg: DictConfig, key: str) -> dict:
                 est.close()
     methods: dict = {}
     for name, row in rows.items():
-        methods[name] = {"available": True, "reason": None, **row.summary()}
-        if row.method == "cnn" and patient == p.cnn.checkpoint_patient:
-            methods[name]["note"] = (f"fine-tuned on {patient}'s sequences (all but their held-out tails): "
-                                     "in-sample, optimistic; see train_depth.json for held-out numbers")
+        methods[name] = {"available": True, "reason": None, **row.summary(), "oracle": row.method in ORACLES}
     for name, reason in unavailable.items():
         sc = declared_scaling(name, p)
-        methods[name] = _nan_row(sc, reason)
+        methods[name] = {**_nan_row(sc, reason), "oracle": name in ORACLES}
         if sc == "metric" and p.also_median:
-            methods[f"{name}_median"] = _nan_row("median", reason)
+            methods[f"{name}_median"] = {**_nan_row("median", reason), "oracle": name in ORACLES}
     lo, hi = (float(x) for x in p.valid_range_mm)
     ev = paths.evaluation(sequence)
     doc = {"methods": round_floats(methods, 6), "units": UNITS, "valid_range_mm": [lo, hi],
            "n_frames": len(samples), "frames": [s.name for s in samples], "input": p.input,
            "estimators": described, "wall_time_s": round(timer.wall_s, 3),
+           "oracle": "rows with oracle: true read the renderer's light model (power, albedo, exposure)",
            "protocol": "frame-averaged metrics on pixels with ground truth in valid_range_mm and a finite positive "
                        "prediction; 'median' rows scaled once per sequence by median(gt) / median(pred)",
            "metadata": metadata("evaluate_depth", patient, cfg, ("depth",), sequence=sequence)}

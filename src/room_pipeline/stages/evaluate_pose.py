@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import math
+import time
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -29,7 +30,9 @@ from ..config.compose import section
 from ..config.params import params_from_dict
 from ..errors import ConfigError, InputError
 from ..evaluate import pose_methods as pm
-from ..evaluate.pose_metrics import per_frame_errors, pose_metrics
+from ..anatomy.centreline import CentrelineGraph
+from ..evaluate.pose_metrics import per_frame_errors, pose_metrics, segment_scores
+from ..evaluate.route_segments import label_frames
 from ..io.atomic import write_json, write_text
 from ..io.images import read_png
 from ..render.camera import CameraIntrinsics
@@ -44,7 +47,7 @@ CURVES = ("position_error_mm", "orientation_error_deg", "step_rotation_error_deg
 class PoseEvalParams:
     """Keys of ``evaluate.pose`` in ``conf/evaluate/default.yaml`` (see its comments for units)."""
 
-    methods: tuple = ("colmap", "orb_vo", "dust3r", "vggt")
+    methods: tuple = ("colmap", "sift_vo", "orb_vo")
     images: str = "noisy"
     frame_stride: int = 1
     max_frames: int | None = None
@@ -52,9 +55,10 @@ class PoseEvalParams:
     seed: int = 0
     rra_threshold_deg: float = 5.0
     auc_max_deg: int = 30
+    bifurcation_radius_factor: float = 2.0
     colmap: Mapping[str, Any] | None = None
     orb: Mapping[str, Any] | None = None
-    weights: Mapping[str, Any] | None = None
+    sift: Mapping[str, Any] | None = None
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "PoseEvalParams":
@@ -69,17 +73,20 @@ class PoseEvalParams:
             raise ConfigError(f"evaluate.pose.max_frames must be null or an integer >= 2, got {p.max_frames!r}")
         if not p.methods:
             raise ConfigError("evaluate.pose.methods is empty")
+        if p.bifurcation_radius_factor <= 0:
+            raise ConfigError("evaluate.pose.bifurcation_radius_factor must be > 0")
         for name in p.methods:
             pm.get_method(str(name))
         return p
 
     def method_params(self) -> pm.PoseMethodParams:
-        weights = dict(self.weights or {})
-        unknown = sorted(set(weights) - set(pm.METHODS))
-        if unknown:
-            raise ConfigError(f"evaluate.pose.weights: unknown method '{unknown[0]}'")
         return pm.PoseMethodParams(seed=self.seed, colmap=pm.ColmapParams.from_dict(self.colmap),
-                                   orb=pm.OrbParams.from_dict(self.orb), weights=weights)
+                                   orb=pm.OrbParams.from_dict(self.orb), sift=pm.SiftParams.from_dict(self.sift))
+
+    def run_names(self) -> list[str]:
+        """The configured methods, then the trivial baselines (always scored, once)."""
+        names = [str(m) for m in self.methods]
+        return names + [b for b in pm.BASELINES if b not in names]
 
 
 def outputs(cfg: DictConfig, key: str) -> list:
@@ -131,12 +138,13 @@ def load_sequence(seq: Path, p: PoseEvalParams) -> tuple[list[np.ndarray], np.nd
     return images, K, np.stack(poses), info
 
 
-def evaluate_methods(images: list[np.ndarray], K: np.ndarray, poses_gt: np.ndarray, p: PoseEvalParams
-                     ) -> tuple[dict, dict]:
-    """Run every configured method: ({name: result record}, {name: per-frame curves}) -- unavailable ones too."""
+def evaluate_methods(images: list[np.ndarray], K: np.ndarray, poses_gt: np.ndarray, p: PoseEvalParams,
+                     labels: list[str] | None = None) -> tuple[dict, dict]:
+    """Run every configured method and the trivial baselines: ({name: result record}, {name: per-frame
+    curves}) -- unavailable ones too.  With per-frame route ``labels``, each record also has ``segments``."""
     mp = p.method_params()
     results, curves = {}, {}
-    for name in p.methods:
+    for name in p.run_names():
         method = pm.get_method(str(name))
         ok, reason = method.availability(mp)
         if not ok:
@@ -144,8 +152,14 @@ def evaluate_methods(images: list[np.ndarray], K: np.ndarray, poses_gt: np.ndarr
             continue
         res = method.estimate(images, K, mp)
         m = pose_metrics(poses_gt, res.poses_c2w, res.registered, p.rra_threshold_deg, p.auc_max_deg)
-        results[name] = {"available": True, "reason": None, **m, "seconds": res.seconds,
-                         "seconds_per_frame": res.seconds / len(images), "info": res.info}
+        cpu = res.info.get("cpu_seconds")
+        results[name] = {"available": True, "reason": None, "baseline": bool(getattr(method, "baseline", False)),
+                         **m, "seconds": res.seconds, "seconds_per_frame": res.seconds / len(images),
+                         "cpu_seconds_per_frame": (cpu / len(images)) if cpu is not None else None,
+                         "info": res.info}
+        if labels is not None:
+            results[name]["segments"] = segment_scores(poses_gt, res.poses_c2w, res.registered, labels,
+                                                       p.rra_threshold_deg, p.auc_max_deg)
         curves[name] = per_frame_errors(poses_gt, res.poses_c2w, res.registered)
     return results, curves
 
@@ -172,7 +186,9 @@ UNITS = {"RRA@tau / RTA@tau / AUC@T / registration_rate": "fractions in [0, 1] (
          "rotation / translation errors": "degrees; translation = angle between relative translation directions, "
                                           "sign folded min(a, 180 - a)",
          "ate_rmse_mm": "mm, RMS camera-centre error after Sim(3) (Umeyama) alignment of the registered frames",
-         "seconds": "wall time of the method on this machine (s)", "seconds_per_frame": "s per input frame"}
+         "seconds": "wall time of the method on this machine (s)", "seconds_per_frame": "s per input frame",
+         "cpu_seconds_per_frame": "process CPU time (user + sys) per input frame, s (fair on a shared machine)",
+         "baseline": "true for the image-blind trivial baselines (identity, constant_forward)"}
 
 
 def run(cfg: DictConfig, key: str) -> dict:
@@ -180,19 +196,32 @@ def run(cfg: DictConfig, key: str) -> dict:
     p = PoseEvalParams.from_dict((section(cfg, "evaluate") or {}).get("pose"))
     paths = patient_paths(cfg, patient)
     seq = paths.sequence(sequence)
+    cpu0 = time.process_time()
     with StageTimer() as timer:
         images, K, poses_gt, info = load_sequence(seq, p)
-        results, curves = evaluate_methods(images, K, poses_gt, p)
+        graph_file = paths.centreline_graph
+        if not graph_file.is_file():
+            raise InputError(f"{graph_file} not found (run the medial_axis stage first): needed for the "
+                             "per-segment scores")
+        labels, regions = label_frames(poses_gt[:, :3, 3], CentrelineGraph.from_dict(read_json(graph_file)),
+                                       p.bifurcation_radius_factor)
+        results, curves = evaluate_methods(images, K, poses_gt, p, labels)
     tau, T = f"{p.rra_threshold_deg:g}", int(p.auc_max_deg)
     write_json(paths.evaluation(sequence) / "pose.json", _finite(round_floats({
         "methods": results, "input": info, "units": UNITS,
-        "protocol": f"all {len(images) * (len(images) - 1) // 2} frame pairs i<j; RRA@{tau}/RTA@{tau}: share of "
+        "segments": {"labels": labels, "bifurcation_regions": regions,
+                     "definition": "bifurcation_<k>: camera centre within bifurcation_radius_factor x the parent "
+                                   "lumen radius of a branch point; trachea: else nearest centreline point on the "
+                                   "root branch; distal: else; scores over pairs with both frames in the segment",
+                     "bifurcation_radius_factor": p.bifurcation_radius_factor},
+        "protocol": f"whole sequence ({len(images)} frames): all {len(images) * (len(images) - 1) // 2} frame pairs i<j; RRA@{tau}/RTA@{tau}: share of "
                     f"pairs under {tau} deg; AUC@{T}: mean over 1..{T} deg thresholds of the share of pairs with "
                     f"max(rot, trans) error under the threshold; pairs with an unregistered frame count 180 deg",
         "metadata": metadata("evaluate_pose", patient, cfg, ("evaluate",), sequence=sequence)}, 6)))
     write_text(paths.evaluation(sequence) / "pose_errors.csv", errors_csv(info["frames"], curves))
     keys = (f"RRA@{tau}", f"RTA@{tau}", f"AUC@{T}", "registration_rate", "ate_rmse_mm", "seconds_per_frame")
     metrics: dict[str, Any] = {"frames": len(images), "wall_time_s": round(timer.wall_s, 3),
+                               "cpu_time_s": round(time.process_time() - cpu0, 3),
                                "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
     for name, r in results.items():
         if r["available"]:

@@ -17,7 +17,8 @@ whatever patients a configuration lists.
 
 Writes ``<output_dir>/evaluation/<patient>/depth_finetune.json`` (read by `tables`) and
 ``<patient>/depth_model/{pretrained.pt, finetuned.pt, training.json,
-training_log.csv}`` and ``<patient>/metrics/train_depth.json`` =
+training_log.csv, train_mean_depth.npy}`` (the last: mean ground-truth depth of the
+training frames, metres, for Table II's ``train_mean`` baseline) and ``<patient>/metrics/train_depth.json`` =
 ``{"datasets": {name: {"available", "reason", "source", "before", "after",
 "n_frames"}}, "training": {...provenance, times, losses...}}``.  Without torch
 the stage still succeeds: ``depth_model/`` then holds only ``training.json``
@@ -42,7 +43,8 @@ from ..depth.cnn import (CNNEstimator, build_model, checkpoint_path, dataset_fro
                          train_steps)
 from ..depth.estimators import DepthParams, evaluate, sequence_samples
 from ..errors import BackendUnavailable, InputError
-from ..io.atomic import write_json, write_text
+from ..depth.baselines import TRAIN_MEAN_FILE
+from ..io.atomic import write_bytes, write_json, write_text
 from .common import StageTimer, _finite, metadata, patient_paths, round_floats, write_metrics
 
 DEFINITION = {
@@ -91,6 +93,31 @@ def _datasets(cfg: DictConfig, patient: str, p: DepthParams, held: list) -> dict
     return out
 
 
+def train_mean_depth(samples: list, valid_range_m: tuple[float, float], stride: int = 5) -> np.ndarray:
+    """Mean ground-truth planar depth image (metres, float32) over every ``stride``-th training frame, valid
+    pixels only (NaN where no frame has one): the ``train_mean`` trivial baseline of Table II."""
+    lo, hi = valid_range_m
+    acc = cnt = None
+    for s in samples[::max(1, stride)]:
+        gt = np.asarray(s.load_gt(), dtype=np.float64)
+        ok = np.isfinite(gt) & (gt >= lo) & (gt <= hi)
+        if acc is None:
+            acc, cnt = np.zeros(gt.shape), np.zeros(gt.shape)
+        if gt.shape != acc.shape:
+            continue
+        acc += np.where(ok, gt, 0.0)
+        cnt += ok
+    if acc is None:
+        raise InputError("train_mean_depth: no training frames")
+    return np.where(cnt > 0, acc / np.maximum(cnt, 1), np.nan).astype(np.float32)
+
+
+def _npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
 def _log_csv(pre: list, ft: list) -> str:
     """Training log for DVC plots: global step (pretraining then fine-tuning), phase, phase step, loss."""
     buf = io.StringIO()
@@ -125,6 +152,8 @@ def run(cfg: DictConfig, patient: str) -> dict:
         if not train_samples:
             raise InputError(f"{patient}: no training frames in sequences {list(cfg.get('sequences') or [])}")
         datasets = _datasets(cfg, patient, p, held)
+        # the image-blind train_mean baseline of Table II (evaluate_depth never scores it on this patient)
+        write_bytes(model_dir / TRAIN_MEAN_FILE, _npy_bytes(train_mean_depth(train_samples, rng_m)))
         training: dict = {"definition": DEFINITION, "seed": tp.seed, "threads": cp.threads,
                           "params": {"cnn": dataclasses.asdict(cp), "train": dataclasses.asdict(tp)},
                           "input": p.input, "valid_range_mm": [float(x) for x in p.valid_range_mm],
