@@ -17,8 +17,8 @@ from room_pipeline.errors import ConfigError
 from room_pipeline.planning.trajectory import TargetInfo, Trajectory, TrajectoryParams, plan_path
 from room_pipeline.robot.actuation import Actuator, CommandSignal, apply_gain, sample_delay
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY, fk
-from room_pipeline.robot.pybullet_sim import (ScopeSim, SimParams, contact_probe, robot_config, settle_free,
-                                              simulate)
+from room_pipeline.robot.pybullet_sim import (ScopeSim, SimParams, contact_probe, friction_probe, robot_config,
+                                              settle_free, simulate)
 
 from .conftest import REPO
 
@@ -271,3 +271,22 @@ def test_controller_tracks_phantom_path(phantom):
     assert rep["tracking_error_mm"]["max"] < 6.0
     assert np.all(tree.sdf(res.tip_poses[:, :3, 3])[0] < 0.0)
     assert np.all(np.abs(res.q_cmd[:, 0]) <= G.q1_max + 1e-12)
+
+
+# --------------------------------------------------------------------------- friction under insertion (issue #17)
+
+
+@pytest.mark.parametrize("dt", [1e-3, 5e-3])
+def test_insertion_by_velocity_recovers_dynamic_friction(dt):
+    """Scope pushed along a flat wall at 0.5 N normal load, inserted at 5 mm/s: the measured friction
+    coefficient is mu_d = 0.25 within 10 % and the switch reads sliding; teleporting the base (the old
+    insertion) leaves the links at 0 mm/s and the friction far below mu_d."""
+    prm = SimParams(time_step_s=dt)
+    moved = friction_probe(prm, G, 0.5, speed_mm_s=5.0)
+    assert moved["normal_n"] == pytest.approx(0.5, rel=0.1)
+    assert moved["mu"] == pytest.approx(prm.friction_dynamic, rel=0.1)
+    assert moved["slip_mm_s"] == pytest.approx(5.0, rel=0.05)
+    assert moved["dynamic_fraction"] > 0.9
+    teleported = friction_probe(prm, G, 0.5, speed_mm_s=5.0, by_velocity=False)
+    assert abs(teleported["slip_mm_s"]) < 0.5
+    assert teleported["mu"] < 0.5 * prm.friction_dynamic
