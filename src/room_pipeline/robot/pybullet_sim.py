@@ -62,12 +62,24 @@ Insertion (``insertion_model``)
     ``q3 - passive_shaft_length_mm`` is kinematic; the last ``passive_shaft_length_mm`` of
     the shaft is a chain of stiffer passive links (bending stiffness
     ``shaft_bending_stiffness_nm2``, straight at rest) that follows the lumen through contact.
+    With ``insertion_by_velocity`` (default) the base is not only placed but given the velocity
+    of that motion each step (linear and angular, from its pose one step earlier), so the links
+    carry the insertion speed: the contact solver sees the axial slip, friction acts along the
+    shaft and the static/dynamic switch reads sliding (teleporting the base left every link at
+    0 mm/s; :func:`friction_probe` measures mu_d both ways, tests/test_simulation.py).
 
 Time stepping per 10 Hz frame
     The controller (:mod:`~room_pipeline.robot.controller`) computes, at frame ``k-1``, the
     command for waypoint ``k``; the command ramps linearly to it over the frame; the
     actuator (:mod:`~room_pipeline.robot.actuation`) delays it and applies its gain; every
-    physics step sets the base pose and the joint targets from the actual ``q``.
+    physics step sets the base pose and the joint targets from the actual ``q``.  Near zero
+    bending the controller holds ``q2`` (``roll_hold_q1_fraction``, ``roll_free_q1_fraction``:
+    :func:`~room_pipeline.robot.controller.regularise_roll`), and the report scores the camera
+    roll against the plan (``camera_roll_deg``).
+
+Errors
+    :func:`simulate` turns bad trajectories and meshes (:func:`check_inputs`) and any failure
+    inside PyBullet, the controller or the linear algebra into one :class:`InputError` line.
 """
 from __future__ import annotations
 
@@ -523,7 +535,8 @@ class ScopeSim:
         return b
 
     # ---- state
-    def set_base(self, pose: np.ndarray, prev_pose: np.ndarray | None = None, h: float = 0.0) -> None:
+    def set_base(self, pose: np.ndarray, prev_pose: np.ndarray | None = None, h: float = 0.0,
+                 reset: bool = True) -> None:
         """Place the (fixed) base at ``pose``; with ``prev_pose`` and ``h`` also give it the velocity
         that moved it from ``prev_pose`` in ``h`` seconds (linear and angular, world frame).
 
@@ -531,13 +544,17 @@ class ScopeSim:
         without the velocity every link of a scope inserted at 5 mm/s reads 0 mm/s: the contact
         solver sees no slip along the shaft and the friction switch always reads static.
         The step integrates the base by that velocity, so it is placed at ``prev_pose`` and reaches
-        ``pose`` at the end of the next step.
+        ``pose`` at the end of the next step.  ``reset=False`` (with ``prev_pose``): only the velocity
+        is set, the base being where the last step took it (Bullet integrates the fixed base too;
+        its error over a 10 Hz frame is second order, |v| |w| h^2 per step, and the caller re-places
+        it each frame); ``resetBasePositionAndOrientation`` costs more than a contact step.
         """
         self.base_pose = pose
         c = self.cid
         at = pose if prev_pose is None or h <= 0.0 else prev_pose
-        p.resetBasePositionAndOrientation(self.body, at[:3, 3].tolist(), _mat_to_quat(at[:3, :3]),
-                                          physicsClientId=c)
+        if reset or at is pose:
+            p.resetBasePositionAndOrientation(self.body, at[:3, 3].tolist(), _mat_to_quat(at[:3, :3]),
+                                              physicsClientId=c)
         if at is not pose:
             v = (pose[:3, 3] - prev_pose[:3, 3]) / h
             w = _log_so3(pose[:3, :3] @ prev_pose[:3, :3].T) / h
@@ -970,11 +987,11 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         faces_loaded.append(len(idx))
         t_build += time.perf_counter() - t0
 
-    def apply(q: np.ndarray, h: float = 0.0) -> None:
+    def apply(q: np.ndarray, h: float = 0.0, reset: bool = True) -> None:
         base = route.frame(q[2] - Lp)
         base[:3, :3] = base[:3, :3] @ _rz(q[1])
         prev = sim.base_pose if (params.insertion_by_velocity and h > 0.0) else None
-        sim.set_base(base, prev, h)
+        sim.set_base(base, prev, h, reset=reset)
         sim.set_bend(q[0])
 
     def base_frame_fn():
@@ -1034,7 +1051,7 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         for j in range(n):
             t_now = ts[k - 1] + (j + 1) * h
             q_act_now = act(t_now)
-            apply(q_act_now, h)
+            apply(q_act_now, h, reset=(j == 0))
             sim.step(1)
         steps += n
         record(k, ts[k])
