@@ -191,6 +191,7 @@ PHYS_OPTIONS = [
     ("defaults", {}),
     ("defaults, insertion teleported (old)", {"insertion_by_velocity": False}),
     ("defaults, no roll hold (old)", {"roll_hold_q1_fraction": 0.0, "roll_free_q1_fraction": 0.0}),
+    ("defaults, roll hold with the bend projected", {"roll_hold_project": True}),
     ("physical mass, dt 2.5 ms", {"mass_scale": 1.0, "mass_damping_per_s": 0.0, "time_step_s": 2.5e-3}),
     ("physical mass, dt 2.5 ms, mass matrix every 4", {"mass_scale": 1.0, "mass_damping_per_s": 0.0,
                                                       "time_step_s": 2.5e-3, "mass_matrix_every": 4}),
@@ -363,7 +364,12 @@ def main_physical(dirs: list[str]) -> None:
     res.mkdir(parents=True, exist_ok=True)
     jpath, mpath = res / "simulation.json", res / "simulation.md"
     out = json.loads(jpath.read_text()) if jpath.exists() else {}
-    out["physical_reference"] = phys
+    done = {Path(q["patient_dir"]).name for q in phys["sequences"] if "skipped" not in q}
+    old = [q for q in out.get("physical_reference", {}).get("sequences", [])
+           if "skipped" not in q and Path(q["patient_dir"]).name not in done]
+    phys["sequences"] = sorted(old + [q for q in phys["sequences"] if "skipped" not in q or
+                                      Path(q["patient_dir"]).name not in {Path(o["patient_dir"]).name for o in old}],
+                               key=lambda q: Path(q["patient_dir"]).name)     # other patients' rows are kept
     jpath.write_text(json.dumps(out, indent=1))
     md = mpath.read_text().split("\n") if mpath.exists() else ["# Scope simulation benchmark (benchmarks/simulation.py)"]
     cut = next((i for i, line in enumerate(md) if line.startswith(PHYS_HEADER)), None)

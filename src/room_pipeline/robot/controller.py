@@ -48,12 +48,14 @@ def _wrap(a: float) -> float:
 
 
 def regularise_roll(q_ik: np.ndarray, q2_prev: float, q1_max: float, hold_fraction: float,
-                    free_fraction: float) -> np.ndarray:
+                    free_fraction: float, project: bool = True) -> np.ndarray:
     """The IK answer with ``q2`` held near zero bending (see the module docstring).
 
     ``q_ik``: the IK's ``[q1, q2, q3]``; ``q2_prev``: the current command's roll.  The weight of
     the IK's ``q2`` is 0 for ``|q1| <= hold_fraction q1_max``, 1 for ``|q1| >= free_fraction q1_max``,
-    linear in between; ``q1`` is projected onto the resulting bending plane.
+    linear in between; ``q1`` is projected onto the resulting bending plane (``project``), or keeps
+    its magnitude, bending in the nearer of the two held half-planes (``project=False``: the bend
+    grows before the roll, so the scope is no longer straight when it turns).
     """
     q = np.asarray(q_ik, float).copy()
     b = abs(q[0]) / q1_max
@@ -65,7 +67,8 @@ def regularise_roll(q_ik: np.ndarray, q2_prev: float, q1_max: float, hold_fracti
         return q
     dq2 = _wrap(q[1] - q2_prev)
     q2 = q2_prev + w * dq2
-    q[0] = q[0] * math.cos(q[1] - q2)
+    c = math.cos(q[1] - q2)
+    q[0] = q[0] * c if project else math.copysign(q[0], q[0] * c if c != 0.0 else q[0])
     q[1] = q2
     return q
 
@@ -91,10 +94,11 @@ class IKController:
 
     def __init__(self, geometry: ScopeGeometry, direction_weight_m: float | None = None,
                  iterations: int = 4, q3_tol_m: float = 1e-7, roll_hold_q1_fraction: float = 0.0,
-                 roll_free_q1_fraction: float = 0.0) -> None:
+                 roll_free_q1_fraction: float = 0.0, roll_project: bool = True) -> None:
         self.geometry = geometry
         self.roll_hold = float(roll_hold_q1_fraction)
         self.roll_free = float(roll_free_q1_fraction)
+        self.roll_project = bool(roll_project)
         self.direction_weight_m = direction_weight_m
         self.iterations = int(iterations)
         self.q3_tol_m = float(q3_tol_m)
@@ -120,5 +124,6 @@ class IKController:
             if dq3 < self.q3_tol_m:
                 break
         if self.roll_hold > 0.0 or self.roll_free > 0.0:
-            q = regularise_roll(q, float(q_ref[1]), self.geometry.q1_max, self.roll_hold, self.roll_free)
+            q = regularise_roll(q, float(q_ref[1]), self.geometry.q1_max, self.roll_hold, self.roll_free,
+                                self.roll_project)
         return q

@@ -152,6 +152,7 @@ class SimParams:
     max_rate_q3_mm_s: float = 50.0          # insertion, mm/s
     roll_hold_q1_fraction: float = 0.05     # controller: q2 held while the IK's |q1| < this x q1_max
     roll_free_q1_fraction: float = 0.15     # ... and follows the IK's q2 fully above this (linear between)
+    roll_hold_project: bool = False         # held: bend projected on the held plane | false: full bend, nearer half-plane
     insertion_by_velocity: bool = True      # the base's velocity is set each step (friction sees the slip)
 
     def __post_init__(self) -> None:
@@ -173,7 +174,7 @@ class SimParams:
             v = self.ik_direction_weight_mm
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"simulate.ik_direction_weight_mm must be >= 0 or null, got {v!r}")
-        for name in ("actuation", "crop_mesh", "insertion_by_velocity"):
+        for name in ("actuation", "crop_mesh", "insertion_by_velocity", "roll_hold_project"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"simulate.{name} must be true or false, got {getattr(self, name)!r}")
         if self.insertion_model not in INSERTION_MODELS:
@@ -965,7 +966,7 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
     act = Actuator(signal, delay, geometry.q1_max, params.gain_q1, params.gain_q2, enabled=params.actuation)
     ctrl = IKController(geometry, None if params.ik_direction_weight_mm is None else params.ik_direction_weight_mm * 1e-3,
                         iterations=params.controller_iterations, roll_hold_q1_fraction=params.roll_hold_q1_fraction,
-                        roll_free_q1_fraction=params.roll_free_q1_fraction)
+                        roll_free_q1_fraction=params.roll_free_q1_fraction, roll_project=params.roll_hold_project)
     max_rate = np.array([params.max_rate_q1_mm_s * 1e-3, math.radians(params.max_rate_q2_deg_s),
                          params.max_rate_q3_mm_s * 1e-3])
     use_crop = mesh is not None and params.crop_mesh
