@@ -198,6 +198,7 @@ PHYS_OPTIONS = [
     ("physical mass, dt 5 ms", {"mass_scale": 1.0, "mass_damping_per_s": 0.0, "time_step_s": 5e-3}),
     ("mass x10, no added damping, dt 5 ms", {"mass_scale": 10.0, "mass_damping_per_s": 0.0, "time_step_s": 5e-3}),
     ("physical mass, dt 1 ms, dynamic friction only", {**PHYS_REF, "friction_model": "dynamic"}),
+    ("physical mass, dt 0.5 ms (is the reference converged?)", {**PHYS_REF, "time_step_s": 5e-4}),
 ]
 
 

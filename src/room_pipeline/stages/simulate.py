@@ -123,6 +123,7 @@ def run(cfg: DictConfig, key: str) -> dict:
                "tracking_error_max_mm": round(r["tracking_error_mm"]["max"], 4),
                "view_error_median_deg": round(r["tracking_error_deg"]["median"], 4),
                "view_error_max_deg": round(r["tracking_error_deg"]["max"], 4),
+               "camera_roll_straight_stretch_max_deg": round(r["camera_roll_deg"]["straight_stretch_change_max"], 4),
                "contact_force_max_n": round(r["contact_force_n"]["max"], 6),
                "penetration_max_mm": round(r["penetration_mm"]["max"], 6),
                "time_step_s": r["time_step_s"], "unstable_runs": len(r["unstable_runs"]),
