@@ -1,6 +1,10 @@
 """Benchmark of the PyBullet scope simulation (room_pipeline.robot.pybullet_sim).
 
     .venv/bin/python benchmarks/simulation.py [--quick]
+    .venv/bin/python benchmarks/simulation.py --physical-reference OUTPUT_DIR [OUTPUT_DIR ...]
+
+(The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
+after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
 
 Writes benchmarks/results/simulation.{json,md}:
   1. speed vs error: n_links x time_step against the free-space tip error vs kinematics.fk
@@ -15,7 +19,13 @@ Writes benchmarks/results/simulation.{json,md}:
      skipped when absent): the collision mesh (decimation of the render mesh vs the render mesh itself:
      measured surface error, tip difference, speed), mass scaling (with mass-proportional damping),
      solver iterations, n_links and the mass-matrix refresh: stability in contact, tracking,
-     free-space settling, wall and CPU time.
+     free-space settling, wall and CPU time;
+  8. the physical-mass reference (issue #17): on each default sequence (``sequence_000`` of every patient
+     folder given; default data/output/patient_*), a physical-mass (mass_scale 1, no added damping),
+     1 ms-step run is the reference, and each option (mass scaling, time step, mass-matrix refresh, roll
+     regularisation, insertion by velocity) is scored against it at the recorded 10 Hz states (tip position
+     and view direction p95 / max), against the plan (median / max), by the camera roll over straight
+     stretches, and by CPU time; plus the friction probe (mu_d recovered by insertion by velocity).
 
 Every simulated wall here is the collision surface the mesh stage writes (``anatomy.collision``,
 default decimation and bound), as in the pipeline, unless a row says otherwise.
@@ -176,6 +186,123 @@ def pipeline_sequence(quick: bool) -> dict:
     return out
 
 
+PHYS_REF = {"mass_scale": 1.0, "mass_damping_per_s": 0.0, "time_step_s": 1e-3}
+PHYS_OPTIONS = [
+    ("defaults", {}),
+    ("defaults, insertion teleported (old)", {"insertion_by_velocity": False}),
+    ("defaults, no roll hold (old)", {"roll_hold_q1_fraction": 0.0, "roll_free_q1_fraction": 0.0}),
+    ("defaults, roll hold with the bend projected", {"roll_hold_project": True}),
+    ("physical mass, dt 2.5 ms", {"mass_scale": 1.0, "mass_damping_per_s": 0.0, "time_step_s": 2.5e-3}),
+    ("physical mass, dt 2.5 ms, mass matrix every 4", {"mass_scale": 1.0, "mass_damping_per_s": 0.0,
+                                                      "time_step_s": 2.5e-3, "mass_matrix_every": 4}),
+    ("physical mass, dt 5 ms", {"mass_scale": 1.0, "mass_damping_per_s": 0.0, "time_step_s": 5e-3}),
+    ("mass x10, no added damping, dt 5 ms", {"mass_scale": 10.0, "mass_damping_per_s": 0.0, "time_step_s": 5e-3}),
+    ("physical mass, dt 1 ms, dynamic friction only", {**PHYS_REF, "friction_model": "dynamic"}),
+    ("physical mass, dt 0.5 ms (is the reference converged?)", {**PHYS_REF, "time_step_s": 5e-4}),
+]
+
+
+def _load_sequence(root: Path):
+    import types
+
+    from room_pipeline.io.mesh import read_obj
+    from room_pipeline.stages.simulate import open_entrance
+
+    fr = json.loads((root / "sequence_000" / "metadata" / "trajectory.json").read_text())["frames"]
+    traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),
+                                 poses=np.array([f["pose"] for f in fr]), arclength=np.array([f["arclength"] for f in fr]))
+    graph = json.loads((root / "anatomy" / "centreline_graph.json").read_text())
+    r0 = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
+    mesh = open_entrance(read_obj(root / "anatomy" / "collision_model.obj"), traj.poses[0, :3, 3],
+                         traj.poses[0, :3, 2], r0)[0]
+    return traj, mesh
+
+
+def physical_reference(roots: list[Path], quick: bool = False) -> dict:
+    """Section 8: every option against the physical-mass, 1 ms-step reference of the same sequence."""
+    from room_pipeline.robot.pybullet_sim import friction_probe
+
+    out: dict = {"reference": PHYS_REF, "sequences": [], "loadavg_start": os.getloadavg()}
+    for root in roots:
+        if not (root / "sequence_000" / "metadata" / "trajectory.json").exists():
+            out["sequences"].append({"patient_dir": str(root), "skipped": "no sequence_000 trajectory"})
+            continue
+        traj, mesh = _load_sequence(root)
+        seq = {"patient_dir": str(root), "frames": len(traj.timestamps), "duration_s": float(traj.timestamps[-1]),
+               "faces": int(mesh.n_faces), "rows": []}
+        ref = None
+        for name, kw in [("reference: physical mass, dt 1 ms", PHYS_REF), *PHYS_OPTIONS[:2 if quick else None]]:
+            prm = SimParams(**{**kw, "max_step_halvings": 0})          # raw: the step as given
+            c0 = time.process_time()
+            r = simulate(traj, mesh, prm, G)
+            cpu = time.process_time() - c0
+            rep = r.report
+            row = {"option": name, "params": kw, "cpu_time_s": cpu, "wall_time_s": rep["wall_time_s"],
+                   "realtime_factor_cpu": rep["duration_s"] / cpu, "tracking_error_mm": rep["tracking_error_mm"],
+                   "tracking_error_deg": rep["tracking_error_deg"], "camera_roll_deg": rep["camera_roll_deg"],
+                   "penetration_mm_max": rep["penetration_mm"]["max"],
+                   "contact_force_n_max": rep["contact_force_n"]["max"]}
+            if ref is None:
+                ref = r.tip_poses
+            else:
+                dp = np.linalg.norm(r.tip_poses[:, :3, 3] - ref[:, :3, 3], axis=1) / MM
+                da = np.degrees([math.atan2(np.linalg.norm(np.cross(a[:3, 2], b[:3, 2])), float(a[:3, 2] @ b[:3, 2]))
+                                 for a, b in zip(r.tip_poses, ref)])
+                row["vs_reference"] = {"tip_mm_p95": float(np.percentile(dp, 95)), "tip_mm_max": float(dp.max()),
+                                       "view_deg_p95": float(np.percentile(da, 95)), "view_deg_max": float(da.max())}
+            print("physical", root.name, json.dumps({k: v for k, v in row.items() if k != "params"}), flush=True)
+            seq["rows"].append(row)
+        out["sequences"].append(seq)
+    out["friction_probe"] = []
+    for dt in (1e-3, 5e-3, 1e-2):
+        for by_velocity in (True, False):
+            res = friction_probe(SimParams(time_step_s=dt), G, 0.5, speed_mm_s=5.0, by_velocity=by_velocity)
+            out["friction_probe"].append({"time_step_s": dt, "insertion_by_velocity": by_velocity, **res})
+            print("friction", json.dumps(out["friction_probe"][-1]), flush=True)
+    out["loadavg_end"] = os.getloadavg()
+    return out
+
+
+def physical_markdown(p: dict) -> list[str]:
+    md = ["", "## Physical-mass reference (issue #17; `--physical-reference`)", "",
+          f"Load average {p['loadavg_start'][0]:.1f} at start, {p['loadavg_end'][0]:.1f} at end (2 shared cores: "
+          "CPU time is the speed figure; wall time is polluted by other processes).  Reference: "
+          f"{p['reference']}, no step halving.  vs ref = the recorded 10 Hz tip states against the reference's; "
+          "vs plan = simulated vs planned camera; roll = camera roll about its view axis relative to the plan, "
+          "largest change over a straight stretch (consecutive frames with |q1| < 0.05 q1_max).  Issue #17's "
+          "bounds: vs ref p95 <= 0.2 mm and <= 1 deg; vs plan median <= 1.0 mm, max <= 2.5 mm, median <= 2 deg; "
+          "straight-stretch roll <= 1 deg; >= 10x real time (CPU).", ""]
+    for seq in p["sequences"]:
+        if "skipped" in seq:
+            md += [f"{seq['patient_dir']}: skipped ({seq['skipped']})", ""]
+            continue
+        md += [f"### {Path(seq['patient_dir']).name}/sequence_000 ({seq['frames']} frames, {seq['duration_s']:.1f} s, "
+               f"{seq['faces']} collision triangles)", "",
+               "| option | CPU s | realtime x (CPU) | vs ref tip p95 / max mm | vs ref view p95 / max deg | vs plan "
+               "median / max mm | vs plan median deg | straight-stretch roll deg | roll max deg | max pen mm |",
+               "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in seq["rows"]:
+            v = r.get("vs_reference")
+            vs = (f"{v['tip_mm_p95']:.3f} / {v['tip_mm_max']:.3f} | {v['view_deg_p95']:.2f} / {v['view_deg_max']:.2f}"
+                  if v else "- | -")
+            md.append(f"| {r['option']} | {r['cpu_time_s']:.2f} | {r['realtime_factor_cpu']:.1f} | {vs} | "
+                      f"{r['tracking_error_mm']['median']:.2f} / {r['tracking_error_mm']['max']:.2f} | "
+                      f"{r['tracking_error_deg']['median']:.2f} | "
+                      f"{r['camera_roll_deg']['straight_stretch_change_max']:.2f} | "
+                      f"{r['camera_roll_deg']['max_abs']:.1f} | {r['penetration_mm_max']:.3f} |")
+        md.append("")
+    md += ["### Friction under insertion (`friction_probe`: straight scope pushed along a flat wall at 0.5 N, 5 mm/s)",
+           "", "| time step s | insertion by velocity | mu measured (mu_d = 0.25) | normal N | links' slip mm/s | "
+           "switch on mu_d |", "|---|---|---|---|---|---|"]
+    for r in p["friction_probe"]:
+        md.append(f"| {r['time_step_s']:g} | {r['insertion_by_velocity']} | {r['mu']:.3f} | {r['normal_n']:.3f} | "
+                  f"{r['slip_mm_s']:.2f} | {r['dynamic_fraction']:.2f} |")
+    return md + [""]
+
+
+PHYS_HEADER = "## Physical-mass reference (issue #17"
+
+
 def pipeline_markdown(p: dict) -> list[str]:
     if "skipped" in p:
         return ["", "## Pipeline default sequence", "", p["skipped"], ""]
@@ -230,8 +357,36 @@ def pipeline_markdown(p: dict) -> list[str]:
     return md + [""]
 
 
+def main_physical(dirs: list[str]) -> None:
+    """Run section 8 only and update it in benchmarks/results/simulation.{json,md}."""
+    roots = [r for d in dirs for r in sorted(Path(d).glob("patient_*")) if r.is_dir()]
+    phys = physical_reference(roots, "--quick" in sys.argv)
+    res = ROOT / "benchmarks" / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    jpath, mpath = res / "simulation.json", res / "simulation.md"
+    out = json.loads(jpath.read_text()) if jpath.exists() else {}
+    done = {Path(q["patient_dir"]).name for q in phys["sequences"] if "skipped" not in q}
+    old = [q for q in out.get("physical_reference", {}).get("sequences", [])
+           if "skipped" not in q and Path(q["patient_dir"]).name not in done]
+    phys["sequences"] = sorted(old + [q for q in phys["sequences"] if "skipped" not in q or
+                                      Path(q["patient_dir"]).name not in {Path(o["patient_dir"]).name for o in old}],
+                               key=lambda q: Path(q["patient_dir"]).name)     # other patients' rows are kept
+    jpath.write_text(json.dumps(out, indent=1))
+    md = mpath.read_text().split("\n") if mpath.exists() else ["# Scope simulation benchmark (benchmarks/simulation.py)"]
+    cut = next((i for i, line in enumerate(md) if line.startswith(PHYS_HEADER)), None)
+    if cut is not None:
+        md = md[:cut - 1] if cut > 0 and md[cut - 1] == "" else md[:cut]
+    md += physical_markdown(phys)
+    mpath.write_text("\n".join(md))
+    print("\n".join(physical_markdown(phys)))
+
+
 def main() -> None:
     quick = "--quick" in sys.argv
+    if "--physical-reference" in sys.argv:
+        i = sys.argv.index("--physical-reference")
+        main_physical([a for a in sys.argv[i + 1:] if not a.startswith("--")])
+        return
     out: dict = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
                              "loadavg_start": os.getloadavg()}, "defaults": SimParams().to_dict()}
     out["speed_vs_error"] = speed_vs_error(quick)
@@ -308,6 +463,7 @@ def main() -> None:
                    "tracking_error_deg": rep["tracking_error_deg"]})
     out["ik_direction_weight"] = iw
     out["pipeline_sequence"] = pipeline_sequence(quick)
+    out["physical_reference"] = physical_reference(sorted((ROOT / "data" / "output").glob("patient_*")), quick)
     out["machine"]["loadavg_end"] = os.getloadavg()
 
     res = ROOT / "benchmarks" / "results"
@@ -353,6 +509,7 @@ def main() -> None:
            f"median {d['tracking_error_deg']['median']:.1f} deg, max {d['tracking_error_deg']['max']:.1f} deg; "
            f"realtime x{d['realtime_factor']:.1f}", ""]
     md += pipeline_markdown(out["pipeline_sequence"])
+    md += physical_markdown(out["physical_reference"])
     (res / "simulation.md").write_text("\n".join(md))
     print("\n".join(md))
 

@@ -17,8 +17,8 @@ from room_pipeline.errors import ConfigError
 from room_pipeline.planning.trajectory import TargetInfo, Trajectory, TrajectoryParams, plan_path
 from room_pipeline.robot.actuation import Actuator, CommandSignal, apply_gain, sample_delay
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY, fk
-from room_pipeline.robot.pybullet_sim import (ScopeSim, SimParams, contact_probe, robot_config, settle_free,
-                                              simulate)
+from room_pipeline.robot.pybullet_sim import (ScopeSim, SimParams, contact_probe, friction_probe, robot_config,
+                                              settle_free, simulate)
 
 from .conftest import REPO
 
@@ -215,6 +215,7 @@ def test_long_insertion_straight_tube():
     # the lag is the actuation delay at 30 mm/s (seed 0: 64 ms -> 1.9 mm); it is the only error source here
     lag_mm = res.report["actuation_delay_s"] * 30.0
     assert res.report["tracking_error_mm"]["median"] == pytest.approx(lag_mm, abs=0.3)
+    assert res.report["camera_roll_deg"]["straight_stretch_change_max"] <= 1.0     # issue #17: no roll from nowhere
     quiet = simulate(tr, mesh, SimParams(actuation=False), G)
     assert quiet.report["tracking_error_mm"]["median"] < 0.3
     assert np.all(tree.sdf(res.tip_poses[:, :3, 3])[0] < -1e-3)
@@ -271,3 +272,56 @@ def test_controller_tracks_phantom_path(phantom):
     assert rep["tracking_error_mm"]["max"] < 6.0
     assert np.all(tree.sdf(res.tip_poses[:, :3, 3])[0] < 0.0)
     assert np.all(np.abs(res.q_cmd[:, 0]) <= G.q1_max + 1e-12)
+
+
+# --------------------------------------------------------------------------- friction under insertion (issue #17)
+
+
+@pytest.mark.parametrize("dt", [1e-3, 5e-3])
+def test_insertion_by_velocity_recovers_dynamic_friction(dt):
+    """Scope pushed along a flat wall at 0.5 N normal load, inserted at 5 mm/s: the measured friction
+    coefficient is mu_d = 0.25 within 10 % and the switch reads sliding; teleporting the base (the old
+    insertion) leaves the links at 0 mm/s and the friction far below mu_d."""
+    prm = SimParams(time_step_s=dt)
+    moved = friction_probe(prm, G, 0.5, speed_mm_s=5.0)
+    assert moved["normal_n"] == pytest.approx(0.5, rel=0.1)
+    assert moved["mu"] == pytest.approx(prm.friction_dynamic, rel=0.1)
+    assert moved["slip_mm_s"] == pytest.approx(5.0, rel=0.05)
+    assert moved["dynamic_fraction"] > 0.9
+    teleported = friction_probe(prm, G, 0.5, speed_mm_s=5.0, by_velocity=False)
+    assert abs(teleported["slip_mm_s"]) < 0.5
+    assert teleported["mu"] < 0.5 * prm.friction_dynamic
+
+
+def test_roll_is_held_near_zero_bending_and_follows_a_real_bend():
+    from room_pipeline.robot.controller import regularise_roll
+
+    qmax = G.q1_max
+    # straight (IK |q1| 1 % of q1_max, bending plane 70 deg away): q2 held, the bend projected onto its plane
+    q = regularise_roll(np.array([0.01 * qmax, math.radians(70.0), 0.1]), 0.0, qmax, 0.05, 0.15)
+    assert q[1] == 0.0 and q[0] == pytest.approx(0.01 * qmax * math.cos(math.radians(70.0)))
+    assert q[2] == 0.1
+    # a real bend (30 % of q1_max): the IK's q2 as it is
+    q = regularise_roll(np.array([0.3 * qmax, 1.2, 0.1]), 0.0, qmax, 0.05, 0.15)
+    assert q[1] == 1.2 and q[0] == 0.3 * qmax
+    # half way: half the (wrapped) turn
+    q = regularise_roll(np.array([0.1 * qmax, math.radians(350.0), 0.1]), 0.0, qmax, 0.05, 0.15)
+    assert math.degrees(q[1]) == pytest.approx(-5.0)
+    # zero bending exactly, and no regularisation configured
+    assert regularise_roll(np.array([0.0, 2.0, 0.0]), 0.5, qmax, 0.05, 0.15)[1] == 0.5
+    assert regularise_roll(np.array([1e-9, 2.0, 0.0]), 0.5, qmax, 0.0, 0.0)[1] == 2.0
+
+
+def test_camera_roll_and_straight_stretch_change():
+    from room_pipeline.robot.pybullet_sim import _rx, _rz, camera_roll, straight_roll_change
+
+    R = _rx(0.3) @ _rz(0.2)
+    for a in (0.0, 0.4, -2.5):
+        assert camera_roll(R @ _rz(a), R) == pytest.approx(a, abs=1e-12)
+    # a tilt of the view axis alone is no roll
+    assert camera_roll(_rx(0.2), np.eye(3)) == pytest.approx(0.0, abs=1e-12)
+    q1 = np.array([0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0]) * G.q1_max
+    roll = np.radians([0.0, 0.5, 0.2, 30.0, 60.0, 60.0, 62.0])
+    assert math.degrees(straight_roll_change(roll, q1, G.q1_max)) == pytest.approx(2.0)
+    assert straight_roll_change(roll, np.full(7, G.q1_max), G.q1_max) == 0.0
+    assert straight_roll_change(np.zeros(0), np.zeros(0), G.q1_max) == 0.0

@@ -13,10 +13,21 @@ frame at the new ``q3`` until ``q3`` changes by less than ``q3_tol_m`` (a fixed 
 (:func:`rate_limit`) to the actuators' speed limits: near a straight scope the bending
 plane ``q2`` is ill-conditioned (any ``q2`` fits a target on the axis), and an unlimited
 IK answer can spin the scope by tens of degrees between two frames.
+
+Roll regularisation (:func:`regularise_roll`): near zero bending any ``q2`` reaches the
+target, so the IK's ``q2`` wanders (it swung between 16 and 80 deg over the straight phantom
+trachea) and the camera, fixed to the tip, rolls with it.  The commanded ``q2`` therefore
+only moves toward the IK's as far as the bending needs it: held while the IK's bend
+``|q1|`` is below ``roll_hold_q1_fraction`` of ``q1_max``, followed fully above
+``roll_free_q1_fraction`` (linear in between); the bend is then projected onto the held
+bending plane (``q1 cos(q2_ik - q2)``: the first-order lateral offset along that plane).
+The actuator rate limit still applies afterwards.
 """
 from __future__ import annotations
 
 from typing import Callable
+
+import math
 
 import numpy as np
 
@@ -29,6 +40,37 @@ def rate_limit(q_new: np.ndarray, q_prev: np.ndarray, dt_s: float, max_rate: np.
     """``q_new`` moved at most ``max_rate * dt_s`` (per joint; m/s, rad/s, m/s) away from ``q_prev``."""
     step = np.clip(np.asarray(q_new, float) - q_prev, -np.asarray(max_rate) * dt_s, np.asarray(max_rate) * dt_s)
     return np.asarray(q_prev, float) + step
+
+
+def _wrap(a: float) -> float:
+    """Angle wrapped into (-pi, pi]."""
+    return math.pi - (math.pi - a) % (2.0 * math.pi)
+
+
+def regularise_roll(q_ik: np.ndarray, q2_prev: float, q1_max: float, hold_fraction: float,
+                    free_fraction: float, project: bool = True) -> np.ndarray:
+    """The IK answer with ``q2`` held near zero bending (see the module docstring).
+
+    ``q_ik``: the IK's ``[q1, q2, q3]``; ``q2_prev``: the current command's roll.  The weight of
+    the IK's ``q2`` is 0 for ``|q1| <= hold_fraction q1_max``, 1 for ``|q1| >= free_fraction q1_max``,
+    linear in between; ``q1`` is projected onto the resulting bending plane (``project``), or keeps
+    its magnitude, bending in the nearer of the two held half-planes (``project=False``: the bend
+    grows before the roll, so the scope is no longer straight when it turns).
+    """
+    q = np.asarray(q_ik, float).copy()
+    b = abs(q[0]) / q1_max
+    if free_fraction <= hold_fraction:
+        w = 1.0 if b > hold_fraction else 0.0
+    else:
+        w = min(1.0, max(0.0, (b - hold_fraction) / (free_fraction - hold_fraction)))
+    if w >= 1.0:
+        return q
+    dq2 = _wrap(q[1] - q2_prev)
+    q2 = q2_prev + w * dq2
+    c = math.cos(q[1] - q2)
+    q[0] = q[0] * c if project else math.copysign(q[0], q[0] * c if c != 0.0 else q[0])
+    q[1] = q2
+    return q
 
 
 def _shift(base_pose: np.ndarray, q3: float) -> np.ndarray:
@@ -46,11 +88,17 @@ class IKController:
         direction_weight_m: weight of the view-direction residual in ``ik`` (m; None: ``l``).
         iterations: fixed-point iterations on the base frame.
         q3_tol_m: stop when the insertion changes by less than this.
+        roll_hold_q1_fraction, roll_free_q1_fraction: roll regularisation (:func:`regularise_roll`);
+            both 0: the IK's q2 as it is.
     """
 
     def __init__(self, geometry: ScopeGeometry, direction_weight_m: float | None = None,
-                 iterations: int = 4, q3_tol_m: float = 1e-7) -> None:
+                 iterations: int = 4, q3_tol_m: float = 1e-7, roll_hold_q1_fraction: float = 0.0,
+                 roll_free_q1_fraction: float = 0.0, roll_project: bool = True) -> None:
         self.geometry = geometry
+        self.roll_hold = float(roll_hold_q1_fraction)
+        self.roll_free = float(roll_free_q1_fraction)
+        self.roll_project = bool(roll_project)
         self.direction_weight_m = direction_weight_m
         self.iterations = int(iterations)
         self.q3_tol_m = float(q3_tol_m)
@@ -75,4 +123,7 @@ class IKController:
             q = res.q.copy()
             if dq3 < self.q3_tol_m:
                 break
+        if self.roll_hold > 0.0 or self.roll_free > 0.0:
+            q = regularise_roll(q, float(q_ref[1]), self.geometry.q1_max, self.roll_hold, self.roll_free,
+                                self.roll_project)
         return q

@@ -69,12 +69,24 @@ Insertion (``insertion_model``)
     ``q3 - passive_shaft_length_mm`` is kinematic; the last ``passive_shaft_length_mm`` of
     the shaft is a chain of stiffer passive links (bending stiffness
     ``shaft_bending_stiffness_nm2``, straight at rest) that follows the lumen through contact.
+    With ``insertion_by_velocity`` (default) the base is not only placed but given the velocity
+    of that motion each step (linear and angular, from its pose one step earlier), so the links
+    carry the insertion speed: the contact solver sees the axial slip, friction acts along the
+    shaft and the static/dynamic switch reads sliding (teleporting the base left every link at
+    0 mm/s; :func:`friction_probe` measures mu_d both ways, tests/test_simulation.py).
 
 Time stepping per 10 Hz frame
     The controller (:mod:`~room_pipeline.robot.controller`) computes, at frame ``k-1``, the
     command for waypoint ``k``; the command ramps linearly to it over the frame; the
     actuator (:mod:`~room_pipeline.robot.actuation`) delays it and applies its gain; every
-    physics step sets the base pose and the joint targets from the actual ``q``.
+    physics step sets the base pose and the joint targets from the actual ``q``.  Near zero
+    bending the controller holds ``q2`` (``roll_hold_q1_fraction``, ``roll_free_q1_fraction``:
+    :func:`~room_pipeline.robot.controller.regularise_roll`), and the report scores the camera
+    roll against the plan (``camera_roll_deg``).
+
+Errors
+    :func:`simulate` turns bad trajectories and meshes (:func:`check_inputs`) and any failure
+    inside PyBullet, the controller or the linear algebra into one :class:`InputError` line.
 """
 from __future__ import annotations
 
@@ -87,7 +99,7 @@ import numpy as np
 import pybullet as p
 from scipy.spatial import cKDTree
 
-from ..errors import ConfigError, InputError
+from ..errors import ConfigError, InputError, RoomError
 from ..io.mesh import Mesh
 from ..progress import progress
 from .actuation import Actuator, CommandSignal, sample_delay
@@ -147,6 +159,10 @@ class SimParams:
     max_rate_q1_mm_s: float = 16.0          # actuator rate limits of the command: tendon differential, mm/s
     max_rate_q2_deg_s: float = 90.0         # axial rotation, deg/s
     max_rate_q3_mm_s: float = 50.0          # insertion, mm/s
+    roll_hold_q1_fraction: float = 0.05     # controller: q2 held while the IK's |q1| < this x q1_max
+    roll_free_q1_fraction: float = 0.15     # ... and follows the IK's q2 fully above this (linear between)
+    roll_hold_project: bool = False         # held: bend projected on the held plane | false: full bend, nearer half-plane
+    insertion_by_velocity: bool = True      # the base's velocity is set each step (friction sees the slip)
 
     def __post_init__(self) -> None:
         ints = ("seed", "solver_iterations", "n_links", "passive_shaft_links", "controller_iterations",
@@ -167,7 +183,7 @@ class SimParams:
             v = self.ik_direction_weight_mm
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"simulate.ik_direction_weight_mm must be >= 0 or null, got {v!r}")
-        for name in ("actuation", "crop_mesh"):
+        for name in ("actuation", "crop_mesh", "insertion_by_velocity", "roll_hold_project"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"simulate.{name} must be true or false, got {getattr(self, name)!r}")
         if self.insertion_model not in INSERTION_MODELS:
@@ -187,7 +203,8 @@ class SimParams:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"simulate.{name} must be > 0, got {getattr(self, name)}")
         for name in ("collision_corridor_mm", "max_step_halvings", "wall_margin_mm", "inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
-                     "delay_max_s", "gain_q1", "gain_q2", "settle_time_s"):
+                     "delay_max_s", "gain_q1", "gain_q2", "settle_time_s",
+                     "roll_hold_q1_fraction", "roll_free_q1_fraction"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"simulate.{name} must be >= 0, got {getattr(self, name)}")
         if self.n_links < 2:
@@ -195,6 +212,9 @@ class SimParams:
         if self.friction_dynamic > self.friction_static:
             raise ConfigError(f"simulate.friction_dynamic ({self.friction_dynamic}) must be <= friction_static "
                               f"({self.friction_static})")
+        if self.roll_free_q1_fraction < self.roll_hold_q1_fraction:
+            raise ConfigError(f"simulate.roll_free_q1_fraction ({self.roll_free_q1_fraction}) must be >= "
+                              f"roll_hold_q1_fraction ({self.roll_hold_q1_fraction})")
         if self.time_step_s > 0.05:
             raise ConfigError(f"simulate.time_step_s must be <= 0.05 s, got {self.time_step_s}")
 
@@ -268,6 +288,55 @@ def _ry(a: float) -> np.ndarray:
 def _rz(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis x angle, rad) of the rotation matrix ``R``."""
+    c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
+    a = math.acos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if a < 1e-6:
+        return 0.5 * v
+    if math.pi - a < 1e-6:   # half turn: axis from the symmetric part
+        i = int(np.argmax(np.diag(R)))
+        axis = R[:, i] + np.eye(3)[i]
+        return a * axis / np.linalg.norm(axis)
+    return a / (2.0 * math.sin(a)) * v
+
+
+def camera_roll(R_act: np.ndarray, R_plan: np.ndarray) -> float:
+    """Roll (rad) of an actual camera about its view axis relative to the planned camera.
+
+    The planned frame is first turned by the least rotation taking its view axis (z) onto the
+    actual one; the roll is the signed angle, about the actual z, from its x axis to the actual x.
+    """
+    za, zp = R_act[:, 2], R_plan[:, 2]
+    v = np.cross(zp, za)
+    s, c = float(np.linalg.norm(v)), float(zp @ za)
+    xp = R_plan[:, 0]
+    if s > 1e-12:
+        k = v / s
+        xp = xp * c + np.cross(k, xp) * s + k * float(k @ xp) * (1.0 - c)
+    xa = R_act[:, 0]
+    return float(math.atan2(float(np.cross(xp, xa) @ za), float(xp @ xa)))
+
+
+def straight_roll_change(roll: np.ndarray, q1: np.ndarray, q1_max: float, fraction: float = 0.05) -> float:
+    """Largest camera-roll change (rad, max - min of the unwrapped roll) over a straight stretch: a
+    run of consecutive frames with ``|q1| < fraction q1_max``; 0 when there is none."""
+    roll = np.unwrap(np.asarray(roll, float))
+    straight = np.abs(np.asarray(q1, float)) < fraction * q1_max
+    worst, i, n = 0.0, 0, len(roll)
+    while i < n:
+        if not straight[i]:
+            i += 1
+            continue
+        j = i
+        while j < n and straight[j]:
+            j += 1
+        worst = max(worst, float(roll[i:j].max() - roll[i:j].min()))
+        i = j
+    return worst
 
 
 def _quat_to_mat(qt) -> np.ndarray:
@@ -539,10 +608,30 @@ class ScopeSim:
         return b
 
     # ---- state
-    def set_base(self, pose: np.ndarray) -> None:
+    def set_base(self, pose: np.ndarray, prev_pose: np.ndarray | None = None, h: float = 0.0,
+                 reset: bool = True) -> None:
+        """Place the (fixed) base at ``pose``; with ``prev_pose`` and ``h`` also give it the velocity
+        that moved it from ``prev_pose`` in ``h`` seconds (linear and angular, world frame).
+
+        ``resetBasePositionAndOrientation`` zeroes the base velocity (joint velocities are kept), so
+        without the velocity every link of a scope inserted at 5 mm/s reads 0 mm/s: the contact
+        solver sees no slip along the shaft and the friction switch always reads static.
+        The step integrates the base by that velocity, so it is placed at ``prev_pose`` and reaches
+        ``pose`` at the end of the next step.  ``reset=False`` (with ``prev_pose``): only the velocity
+        is set, the base being where the last step took it (Bullet integrates the fixed base too;
+        its error over a 10 Hz frame is second order, |v| |w| h^2 per step, and the caller re-places
+        it each frame); ``resetBasePositionAndOrientation`` costs more than a contact step.
+        """
         self.base_pose = pose
-        p.resetBasePositionAndOrientation(self.body, pose[:3, 3].tolist(), _mat_to_quat(pose[:3, :3]),
-                                          physicsClientId=self.cid)
+        c = self.cid
+        at = pose if prev_pose is None or h <= 0.0 else prev_pose
+        if reset or at is pose:
+            p.resetBasePositionAndOrientation(self.body, at[:3, 3].tolist(), _mat_to_quat(at[:3, :3]),
+                                              physicsClientId=c)
+        if at is not pose:
+            v = (pose[:3, 3] - prev_pose[:3, 3]) / h
+            w = _log_so3(pose[:3, :3] @ prev_pose[:3, :3].T) / h
+            p.resetBaseVelocity(self.body, v.tolist(), w.tolist(), physicsClientId=c)
 
     def set_bend(self, q1: float) -> None:
         """Joint targets of the bending segment for tendon differential ``q1`` (in its rolled base)."""
@@ -712,6 +801,62 @@ def contact_probe(params: SimParams, force_n: float, time_s: float = 1.0) -> tup
         p.disconnect(physicsClientId=c)
 
 
+def friction_probe(params: SimParams, geometry: ScopeGeometry, normal_force_n: float, speed_mm_s: float = 5.0,
+                   time_s: float = 2.0, by_velocity: bool | None = None) -> dict:
+    """Push the straight scope along a flat wall at a known normal load and measure the friction.
+
+    The bending segment lies on a triangle-mesh floor (built like the airway: concave trimesh,
+    friction 1.0, margin ``wall_margin_mm``), its axis along world x; ``normal_force_n`` is
+    spread evenly over its links (pressing them on the floor), and the base is inserted along
+    the axis at ``speed_mm_s`` the way :func:`simulate` moves it (``by_velocity``: default
+    ``insertion_by_velocity``), the friction switch re-evaluated every 0.1 s as there.  Over the
+    second half of ``time_s``: ``mu`` = |sum of the contacts' friction forces| / sum of their
+    normal forces (the pair's coefficient, Bullet's product of the two bodies' ``lateralFriction``),
+    ``normal_n`` that sum, ``slip_mm_s`` the links' mean speed along the axis and
+    ``dynamic_fraction`` the share of (link, frame) pairs the switch put on ``mu_d``.
+    """
+    by_velocity = params.insertion_by_velocity if by_velocity is None else bool(by_velocity)
+    sim = ScopeSim(params, geometry)
+    c = sim.cid
+    try:
+        sim.set_wall(np.array([[-1.0, -0.5, 0.0], [1.0, -0.5, 0.0], [1.0, 0.5, 0.0], [-1.0, 0.5, 0.0]]),
+                     np.array([[0, 1, 2], [0, 2, 3]]))
+        base = np.eye(4)
+        base[:3, :3] = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])   # z (axis) = world x
+        base[:3, 3] = [0.0, 0.0, sim.radius]
+        sim.set_base(base)
+        sim.set_bend(0.0)
+        sim.reset_joints()
+        dt = params.time_step_s
+        n = int(round(time_s / dt))
+        per_frame = max(1, int(round(0.1 / dt)))
+        f_per_link = normal_force_n / len(sim.capsules)
+        fric, normal, slip, dyn = np.zeros(3), 0.0, [], []
+        for i in range(n):
+            if i % per_frame == 0:
+                sim.update_friction()
+                dyn.extend(np.isclose(sim._mu, params.friction_dynamic) if params.friction_model == "switch"
+                           else [True] * len(sim.capsules))
+            nxt = sim.base_pose.copy()
+            nxt[0, 3] += speed_mm_s * 1e-3 * dt
+            sim.set_base(nxt, sim.base_pose if by_velocity else None, dt)
+            for j in sim.capsules:
+                pos = p.getLinkState(sim.body, j, computeForwardKinematics=1, physicsClientId=c)[0]
+                p.applyExternalForce(sim.body, j, [0.0, 0.0, -f_per_link], pos, p.WORLD_FRAME, physicsClientId=c)
+            sim.step(1)
+            if i >= n // 2:
+                for cp in p.getContactPoints(sim.body, sim.wall, physicsClientId=c):
+                    normal += cp[9]
+                    fric += cp[10] * np.array(cp[11]) + cp[12] * np.array(cp[13])
+                states = p.getLinkStates(sim.body, sim.capsules, computeLinkVelocity=1, physicsClientId=c)
+                slip.append(np.mean([s[6][0] for s in states]))
+        m = n - n // 2
+        return {"mu": float(np.linalg.norm(fric) / normal) if normal > 0 else 0.0, "normal_n": normal / m,
+                "slip_mm_s": float(np.mean(slip)) * 1e3, "dynamic_fraction": float(np.mean(dyn))}
+    finally:
+        sim.close()
+
+
 def settle_free(q, params: SimParams, geometry: ScopeGeometry, steps: int | None = None,
                 from_straight: bool = True) -> np.ndarray:
     """Tip pose (base frame) of the free scope at ``q`` after settling: the check against ``fk``.
@@ -797,15 +942,21 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
     A run that goes unstable (penetration deeper than ``unstable_penetration_mm``, or a
     non-finite pose) is redone with half the time step, at most ``max_step_halvings`` times;
     the report says which step was used (``time_step_s``) and lists the runs given up.
+
+    Raises:
+        InputError: a trajectory or mesh the physics cannot use (non-finite, misshaped, timestamps
+            not increasing, face indices out of range), a failure inside PyBullet or the controller,
+            or a run still non-finite after every step halving: one line naming what failed.
     """
     from threadpoolctl import threadpool_limits
 
     params = params or SimParams()
+    check_inputs(trajectory, mesh)
     given_up = []
     widened = []
     with threadpool_limits(limits=1, user_api="blas"):
         for _ in range(params.max_step_halvings + 1):
-            res = _simulate(trajectory, mesh, params, geometry)
+            res = _simulate_or_fail(trajectory, mesh, params, geometry)
             # the scope strayed so far from the route that it may have reached wall left out of the
             # corridor: redo with the corridor doubled (at most three times, then the whole mesh)
             while (res.report["mesh"] or {}).get("corridor_margin_mm", 0.0) < 0.0:
@@ -814,7 +965,7 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
                                 "wall_time_s": res.report["wall_time_s"]})
                 params = dataclasses.replace(params, collision_corridor_mm=(
                     2.0 * params.collision_corridor_mm if len(widened) < 3 else 0.0))
-                res = _simulate(trajectory, mesh, params, geometry)
+                res = _simulate_or_fail(trajectory, mesh, params, geometry)
             stable = (np.all(np.isfinite(res.tip_poses))
                       and res.report["penetration_mm"]["max"] <= params.unstable_penetration_mm)
             if stable or len(given_up) == params.max_step_halvings:
@@ -822,12 +973,59 @@ def simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
             given_up.append({"time_step_s": params.time_step_s, "penetration_mm_max": res.report["penetration_mm"]["max"],
                              "wall_time_s": res.report["wall_time_s"]})
             params = dataclasses.replace(params, time_step_s=0.5 * params.time_step_s)
+    if not np.all(np.isfinite(res.tip_poses)):
+        raise InputError(f"simulate: the scope's pose went non-finite even at time step {params.time_step_s} s "
+                         f"(after {len(given_up)} halvings; simulate.max_step_halvings)")
     res.report["unstable_runs"] = given_up
     res.report["corridor_widened"] = [{k: v for k, v in w.items() if k != "wall_time_s"} for w in widened]
     if given_up or widened:       # the speed of the whole call, retries included
         res.report["wall_time_s"] += sum(g["wall_time_s"] for g in given_up + widened)
         res.report["realtime_factor"] = res.report["duration_s"] / res.report["wall_time_s"]
     return res
+
+
+def check_inputs(trajectory, mesh: Mesh | None) -> None:
+    """Raise :class:`InputError` (one line) for a trajectory or mesh the physics cannot use."""
+    try:
+        ts = np.asarray(trajectory.timestamps, float)
+        poses = np.asarray(trajectory.poses, float)
+        arc = np.asarray(trajectory.arclength, float)
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise InputError(f"simulate: unreadable trajectory ({exc})") from None
+    T = len(ts)
+    if ts.ndim != 1 or T < 2:
+        raise InputError(f"simulate: the trajectory needs at least 2 frames, got {T}")
+    if poses.shape != (T, 4, 4) or arc.shape != (T,):
+        raise InputError(f"simulate: trajectory poses must be ({T}, 4, 4) and arclength ({T},), "
+                         f"got {poses.shape} and {arc.shape}")
+    for name, a in (("timestamps", ts), ("poses", poses), ("arclength", arc)):
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"simulate: trajectory {name} contain non-finite values")
+    if np.any(np.diff(ts) <= 0):
+        raise InputError(f"simulate: trajectory timestamps must increase (first bad frame "
+                         f"{int(np.argmax(np.diff(ts) <= 0)) + 1})")
+    R = poses[:, :3, :3]
+    if np.max(np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3))) > 1e-4:
+        raise InputError("simulate: trajectory poses must have orthonormal rotations")
+    if mesh is not None:
+        V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
+            raise InputError("simulate: the collision mesh's vertices must be finite (N, 3)")
+        if F.size and (F.ndim != 2 or F.shape[1] != 3 or F.min() < 0 or F.max() >= len(V)):
+            raise InputError(f"simulate: the collision mesh's faces must index its {len(V)} vertices")
+
+
+def _simulate_or_fail(trajectory, mesh, params, geometry):
+    """One run of :func:`_simulate`; a failure of the physics becomes one ``InputError`` line."""
+    try:
+        return _simulate(trajectory, mesh, params, geometry)
+    except RoomError:
+        raise
+    except (p.error, np.linalg.LinAlgError, FloatingPointError, ValueError, ZeroDivisionError,
+            OverflowError, MemoryError) as exc:
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        raise InputError(f"simulate: the physics failed at time step {params.time_step_s} s "
+                         f"({type(exc).__name__}: {msg})") from None
 
 
 def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
@@ -853,7 +1051,8 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
     signal = CommandSignal()
     act = Actuator(signal, delay, geometry.q1_max, params.gain_q1, params.gain_q2, enabled=params.actuation)
     ctrl = IKController(geometry, None if params.ik_direction_weight_mm is None else params.ik_direction_weight_mm * 1e-3,
-                        iterations=params.controller_iterations)
+                        iterations=params.controller_iterations, roll_hold_q1_fraction=params.roll_hold_q1_fraction,
+                        roll_free_q1_fraction=params.roll_free_q1_fraction, roll_project=params.roll_hold_project)
     max_rate = np.array([params.max_rate_q1_mm_s * 1e-3, math.radians(params.max_rate_q2_deg_s),
                          params.max_rate_q3_mm_s * 1e-3])
     use_crop = mesh is not None and params.crop_mesh
@@ -875,10 +1074,11 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         faces_loaded.append(len(idx))
         t_build += time.perf_counter() - t0
 
-    def apply(q: np.ndarray) -> None:
+    def apply(q: np.ndarray, h: float = 0.0, reset: bool = True) -> None:
         base = route.frame(q[2] - Lp)
         base[:3, :3] = base[:3, :3] @ _rz(q[1])
-        sim.set_base(base)
+        prev = sim.base_pose if (params.insertion_by_velocity and h > 0.0) else None
+        sim.set_base(base, prev, h, reset=reset)
         sim.set_bend(q[0])
 
     def base_frame_fn():
@@ -957,7 +1157,7 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         for j in range(n):
             t_now = ts[k - 1] + (j + 1) * h
             q_act_now = act(t_now)
-            apply(q_act_now)
+            apply(q_act_now, h, reset=(j == 0))
             sim.step(1)
         steps += n
         record(k, ts[k])
@@ -967,6 +1167,8 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
 
     err_m = np.linalg.norm(tip[:, :3, 3] - poses[:, :3, 3], axis=1)
     err_rad = np.array([_angle(tip[i, :3, 2], poses[i, :3, 2]) for i in range(T)])
+    roll = np.array([camera_roll(tip[i, :3, :3], poses[i, :3, :3]) for i in range(T)])
+    roll_rel = np.unwrap(roll) - np.unwrap(roll)[0]
     duration = float(ts[-1] - ts[0]) if T > 1 else 0.0
     report = {
         "frames": int(T), "duration_s": duration, "steps": int(steps), "time_step_s": dt,
@@ -974,6 +1176,13 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         "tracking_error_mm": {"median": float(np.median(err_m) * 1e3), "max": float(err_m.max() * 1e3),
                               "mean": float(err_m.mean() * 1e3)},
         "tracking_error_deg": {"median": float(np.degrees(np.median(err_rad))), "max": float(np.degrees(err_rad.max()))},
+        "camera_roll_deg": {"description": "actual camera roll about its view axis relative to the planned camera, "
+                                           "change since the first frame",
+                            "median_abs": float(np.degrees(np.median(np.abs(roll_rel)))),
+                            "max_abs": float(np.degrees(np.abs(roll_rel).max())),
+                            "straight_stretch_change_max": float(np.degrees(straight_roll_change(
+                                roll, q_act[:, 0], geometry.q1_max))),
+                            "straight_stretch": "consecutive frames with |q1| < 0.05 q1_max"},
         "contact_force_n": {"max": float(force.max()), "mean": float(force.mean()),
                             "frames_in_contact": int((force > 0).sum())},
         "penetration_mm": {"max": float(pen.max() * 1e3)},

@@ -24,11 +24,12 @@ import numpy as np
 from omegaconf import DictConfig
 
 from ..config.compose import section
+from ..errors import InputError
 from ..io.atomic import write_json, write_text
 from ..io.mesh import Mesh, read_obj
 from ..planning.trajectory import tum_text
 from ..robot.kinematics import ScopeGeometry
-from ..robot.pybullet_sim import SimParams, robot_config, simulate
+from ..robot.pybullet_sim import SimParams, check_inputs, robot_config, simulate
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 from .trajectory import split_key
 
@@ -52,6 +53,31 @@ def open_entrance(mesh: Mesh, start: np.ndarray, tangent: np.ndarray, radius: fl
     return Mesh(mesh.vertices, mesh.faces[~drop]), int(drop.sum())
 
 
+def _read_inputs(trajectory_json, graph_json, key: str):
+    """The planned trajectory (timestamps, poses, arclength) and the root branch's radius; a missing or
+    malformed file is one :class:`InputError` line naming it."""
+    path = trajectory_json
+    try:
+        frames = read_json(path)["frames"]
+        traj = types.SimpleNamespace(
+            timestamps=np.array([f["timestamp"] for f in frames], float),
+            poses=np.array([f["pose"] for f in frames], float),
+            arclength=np.array([f["arclength"] for f in frames], float))
+        if traj.poses.ndim != 3 or traj.poses.shape[1:] != (4, 4):
+            raise ValueError(f"poses of shape {traj.poses.shape}, expected (N, 4, 4)")
+        path = graph_json
+        graph = read_json(path)
+        root_radius = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
+    except StopIteration:
+        raise InputError(f"simulate {key}: {path} has no root branch (parent -1)") from None
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise InputError(f"simulate {key}: cannot read {path} ({type(exc).__name__}: "
+                         f"{' '.join(str(exc).split())})") from None
+    if not (np.isfinite(root_radius) and root_radius > 0):
+        raise InputError(f"simulate {key}: {graph_json}: root branch radius must be > 0, got {root_radius}")
+    return traj, root_radius
+
+
 def run(cfg: DictConfig, key: str) -> dict:
     patient, sequence = split_key(key)
     params = SimParams.from_dict(section(cfg, "simulate"))
@@ -59,17 +85,21 @@ def run(cfg: DictConfig, key: str) -> dict:
     paths = patient_paths(cfg, patient)
     meta_dir = paths.sequence_metadata(sequence)
     with StageTimer() as timer:
-        doc = read_json(meta_dir / "trajectory.json")
-        frames = doc["frames"]
-        traj = types.SimpleNamespace(
-            timestamps=np.array([f["timestamp"] for f in frames]),
-            poses=np.array([f["pose"] for f in frames]),
-            arclength=np.array([f["arclength"] for f in frames]))
-        graph = read_json(paths.centreline_graph)
-        root_radius = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
-        mesh, n_dropped = open_entrance(read_obj(paths.collision_mesh), traj.poses[0, :3, 3], traj.poses[0, :3, 2],
-                                        root_radius)
-        res = simulate(traj, mesh, params, geometry)
+        traj, root_radius = _read_inputs(meta_dir / "trajectory.json", paths.centreline_graph, key)
+        try:
+            wall = read_obj(paths.collision_mesh)
+        except (OSError, ValueError, IndexError) as exc:
+            raise InputError(f"simulate {key}: cannot read the collision mesh {paths.collision_mesh} "
+                             f"({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+        try:
+            check_inputs(traj, wall)
+        except InputError as exc:
+            raise InputError(f"{key}: {exc} ({paths.collision_mesh}, {meta_dir / 'trajectory.json'})") from None
+        mesh, n_dropped = open_entrance(wall, traj.poses[0, :3, 3], traj.poses[0, :3, 2], root_radius)
+        try:
+            res = simulate(traj, mesh, params, geometry)
+        except InputError as exc:
+            raise InputError(f"{key}: {exc}") from None
     report = {k: v for k, v in res.report.items() if k not in _TIMING_KEYS}
     if isinstance(report.get("mesh"), dict):
         report["mesh"] = {k: v for k, v in report["mesh"].items() if k != "build_time_s"}
@@ -93,6 +123,7 @@ def run(cfg: DictConfig, key: str) -> dict:
                "tracking_error_max_mm": round(r["tracking_error_mm"]["max"], 4),
                "view_error_median_deg": round(r["tracking_error_deg"]["median"], 4),
                "view_error_max_deg": round(r["tracking_error_deg"]["max"], 4),
+               "camera_roll_straight_stretch_max_deg": round(r["camera_roll_deg"]["straight_stretch_change_max"], 4),
                "contact_force_max_n": round(r["contact_force_n"]["max"], 6),
                "penetration_max_mm": round(r["penetration_mm"]["max"], 6),
                "time_step_s": r["time_step_s"], "unstable_runs": len(r["unstable_runs"]),
