@@ -20,8 +20,11 @@ For each frame ``i`` (in pose order):
    exp(-dt / smoothing_s)) (e_i - E_{i-1})``, ``E_0 = e_0``;
 4. highlight protection, without lag (a gain control's fast attack): the
    exposure is at most ``log2(highlight_max / h_i)`` with ``h_i`` the
-   ``highlight_percentile``-th percentile of the frame's luminance, so no
-   more than about ``100 - highlight_percentile`` % of a frame clips;
+   ``highlight_percentile``-th percentile of the lit pixels' largest linear
+   channel (a saturated red clips before the luminance does), so no more
+   than about ``100 - highlight_percentile`` % of a frame clips
+   (``highlight_max`` < 1 leaves head-room for the texture, which the meter
+   does not see);
 5. the result is clamped to ``[min_ev, max_ev]`` (the gain range) and
    rounded to 1/1000 EV.
 
@@ -86,11 +89,13 @@ def raw_exposures(scene: Scene, p: ExposureParams, nthreads: int = 0) -> tuple[n
     limit = np.full(len(scene.poses), np.inf)
     for i in range(len(scene.poses)):
         res = r.render(i, ("rgb",))
-        y = luminance(res["rgb_linear"])[res["hit"]]
-        y = y[np.isfinite(y) & (y > 0)]
-        if y.size == 0:
+        lin = res["rgb_linear"][res["hit"]]
+        y = luminance(lin)
+        ok = np.isfinite(y) & (y > 0)
+        if not ok.any():
             continue
-        ref, hi = (float(x) for x in np.percentile(y, [p.percentile, p.highlight_percentile]))
+        ref = float(np.percentile(y[ok], p.percentile))
+        hi = float(np.percentile(lin[ok].max(axis=1), p.highlight_percentile))
         if ref > 0 and math.isfinite(ref):
             out[i] = math.log2(p.target / ref)
         if hi > 0 and math.isfinite(hi):
