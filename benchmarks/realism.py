@@ -44,8 +44,8 @@ REAL = ROOT.parent / "shared" / "data" / "bronchoscopy_frames" / "brea_depth"
 CACHE = ROOT / "benchmarks" / ".cache" / "realism"
 
 
-def prepare(inputs: Path, patient: str = "patient_000", seq: str = "sequence_000") -> Path:
-    out = CACHE / "out"
+def prepare(inputs: Path, mode: str, patient: str = "patient_000", seq: str = "sequence_000") -> Path:
+    out = CACHE / mode            # one scratch output_dir per mode: --fit, --sweep and the score may run at once
     need = [f"{patient}/anatomy/lung_model.obj", f"{patient}/anatomy/centreline_graph.json",
             f"{patient}/{seq}/metadata/simulation.json"]
     for rel in need:
@@ -116,7 +116,7 @@ def main() -> None:
     a = ap.parse_args()
     from room_pipeline import realism as R
 
-    out = prepare(Path(a.inputs))
+    out = prepare(Path(a.inputs), "fit" if a.fit else "sweep" if a.sweep else "score")
     real = R.frame_paths(a.real)
     half = len(real) // 2
     sets = {"fit": real[:half], "check": real[half:], "all": real}

@@ -232,7 +232,17 @@ class _Renderers:
 
         out = self.raycast.render(i, mods - {"rgb"})
         if "rgb" in mods:
-            out["rgb"] = linear_to_srgb8(self.cycles.render(i, ("rgb",))["rgb"])
+            lin = self.cycles.render(i, ("rgb",))["rgb"]
+            film = self.raycast.scene.film
+            if film.frame_ev is None and film.vignetting == 0 and film.response == "srgb":
+                out["rgb"] = linear_to_srgb8(lin)
+            else:        # the per-frame exposure, vignetting and response, as the ray caster applies them
+                from ..render.shading import apply_response
+
+                lin = lin * np.float32(2.0 ** (film.ev(i, 0.0) - self.cycles.exposure_ev)) if film.frame_ev else lin
+                if film.vignetting > 0:
+                    lin = lin * (self.raycast._inv_ray_len ** np.float32(film.vignetting))[..., None]
+                out["rgb"] = apply_response(lin, film)
             if "point_cloud" in out:
                 out["point_cloud_colors"] = out["rgb"][out["hit"]]
         return out
