@@ -308,3 +308,18 @@ def test_cycles_renders_the_same_scope_light_as_the_ray_caster():
     p_spot, p_cross = _psnr(*res["spot"]), _psnr(res["spot"][1], res["iso"][0])
     print(f"PSNR raycast vs Cycles with the spot profile: {p_spot:.1f} dB; vs isotropic raycast {p_cross:.1f} dB")
     assert p_spot > 35.0 and p_spot > p_cross + 6.0
+
+
+def test_veiling_glare_keeps_energy_and_lifts_the_dark():
+    from room_pipeline.render.shading import apply_response, veiling_glare
+
+    x = np.zeros((8, 8, 3), np.float32)
+    x[:4] = 0.5
+    y = veiling_glare(x, 0.1)
+    np.testing.assert_allclose(y.mean(axis=(0, 1)), x.mean(axis=(0, 1)), rtol=1e-6)   # energy kept
+    assert y[6, 6, 0] > 0 and y[0, 0, 0] < 0.5
+    assert veiling_glare(x, 0.0) is x
+    a = apply_response(x, Film(veiling_glare=0.1))
+    assert a[6, 6, 0] > 0 and apply_response(x, Film())[6, 6, 0] == 0
+    with pytest.raises(ValueError):
+        Film(veiling_glare=1.0)

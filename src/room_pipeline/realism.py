@@ -92,6 +92,29 @@ def frame_stats(im: np.ndarray) -> dict:
             "L_hist": hl, "grad_hist": hg / g.size, "grad_mean": float(gm.mean()), "profile": prof}
 
 
+def sequence_metrics(paths: list[Path]) -> dict:
+    """DVC metrics of a rendered sequence's RGB (full resolution, every frame): mean Lab, clipped and dark
+    fractions (mean and worst frame).  Empty list: {}."""
+    import cv2
+
+    labs, clip, dark = [], [], []
+    for p in paths:
+        im = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if im is None:
+            raise InputError(f"{p}: not a readable image")
+        lab = cv2.cvtColor(im, cv2.COLOR_BGR2LAB).reshape(-1, 3).astype(np.float64).mean(0)
+        labs.append([lab[0] * 100 / 255, lab[1] - 128, lab[2] - 128])
+        clip.append(float((im >= 250).any(-1).mean()))
+        dark.append(float((im <= 10).all(-1).mean()))
+    if not labs:
+        return {}
+    m = np.mean(labs, axis=0)
+    return {"rgb_L_mean": round(float(m[0]), 3), "rgb_a_mean": round(float(m[1]), 3), "rgb_b_mean": round(float(m[2]), 3),
+            "rgb_clipped_fraction_mean": round(float(np.mean(clip)), 6),
+            "rgb_clipped_fraction_max": round(float(np.max(clip)), 6),
+            "rgb_dark_fraction_mean": round(float(np.mean(dark)), 6)}
+
+
 def set_stats(ims: list[np.ndarray]) -> dict:
     """Statistics of a set of frames (means over frames; histograms pooled)."""
     fs = [frame_stats(i) for i in ims]

@@ -81,6 +81,10 @@ class Film:
         (``v = x^(1/gamma)``; EndoMapper calibrates gamma 2.2), ray caster only.
     vignetting: lens vignetting ``cos(off-axis angle)^vignetting`` on the
         image (0 = none; natural vignetting of a pinhole is 4).
+    veiling_glare: stray light in the lens spread evenly over the sensor:
+        pixel = ``(1 - g) x + g mean(x)`` per channel over the frame (energy kept);
+        lifts the dark lumen the way scattered light does in a real scope (and
+        stands in for the inter-reflections a single-bounce renderer omits).
     """
 
     exposure_ev: float | None = None
@@ -92,8 +96,11 @@ class Film:
     response: str = "srgb"
     gamma: float = 2.2
     vignetting: float = 0.0
+    veiling_glare: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.veiling_glare < 1:
+            raise ValueError(f"film.veiling_glare must be in [0, 1), got {self.veiling_glare}")
         if self.response not in ("srgb", "gamma"):
             raise ValueError(f"film.response must be 'srgb' or 'gamma', got {self.response!r}")
         if not self.gamma > 0 or not self.vignetting >= 0:

@@ -193,6 +193,14 @@ def linear_to_srgb8(linear_rgb: np.ndarray, exposure_ev: float = 0.0, view_trans
     return _LUT[idx.astype(np.int32)]
 
 
+def veiling_glare(x: np.ndarray, g: float) -> np.ndarray:
+    """``(1 - g) x + g mean(x)`` per channel over the image (float32; NaN-safe mean); ``g`` 0: ``x`` unchanged."""
+    if g <= 0:
+        return x
+    m = np.nan_to_num(x.reshape(-1, x.shape[-1]).mean(axis=0, dtype=np.float64)).astype(np.float32)
+    return x * np.float32(1.0 - g) + np.float32(g) * m
+
+
 def apply_response(linear_rgb: np.ndarray, film: Film, exposure_ev: float = 0.0,
                    vignette: np.ndarray | None = None) -> np.ndarray:
     """Linear radiance -> 8-bit pixels through the film: exposure, vignetting, response curve, clipping.
@@ -203,6 +211,8 @@ def apply_response(linear_rgb: np.ndarray, film: Film, exposure_ev: float = 0.0,
     x = np.asarray(linear_rgb, dtype=np.float32)
     if vignette is not None:
         x = x * np.asarray(vignette, dtype=np.float32)[..., None]
+    x = veiling_glare(x * np.float32(2.0 ** exposure_ev), film.veiling_glare)
+    exposure_ev = 0.0
     if film.response == "srgb":
         return linear_to_srgb8(x, exposure_ev, film.view_transform)
     y = np.clip(np.nan_to_num(x * np.float32(2.0 ** exposure_ev), nan=0.0), 0.0, 1.0)

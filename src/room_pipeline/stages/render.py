@@ -93,6 +93,7 @@ class RenderParams:
     auto_exposure_highlight_percentile: float = 99.0
     auto_exposure_highlight_max: float = 0.9
     vignetting: float = 0.0
+    veiling_glare: float = 0.0
     response: str = "srgb"
     gamma: float = 2.2
     shading_stride: int = 2
@@ -146,7 +147,7 @@ def scene_parts(p: "RenderParams") -> tuple[TissueMaterial, TipLight, Film]:
                      falloff_length_m=p.light_falloff_length_mm * MM, spot_exponent=p.light_spot_exponent)
     film = Film(exposure_ev=p.exposure_ev, auto_target=p.auto_exposure_target,
                 auto_percentile=p.auto_exposure_percentile, response=p.response, gamma=p.gamma,
-                vignetting=p.vignetting)
+                vignetting=p.vignetting, veiling_glare=p.veiling_glare)
     return material, light, film
 
 
@@ -234,7 +235,7 @@ class _Renderers:
         if "rgb" in mods:
             lin = self.cycles.render(i, ("rgb",))["rgb"]
             film = self.raycast.scene.film
-            if film.frame_ev is None and film.vignetting == 0 and film.response == "srgb":
+            if film.frame_ev is None and film.vignetting == 0 and film.response == "srgb" and not film.veiling_glare:
                 out["rgb"] = linear_to_srgb8(lin)
             else:        # the per-frame exposure, vignetting and response, as the ray caster applies them
                 from ..render.shading import apply_response
@@ -424,5 +425,11 @@ def run(cfg: DictConfig, key: str) -> dict:
                "flow_valid_fraction_mean": round(float(np.mean(n_valid_flow)), 6) if n_valid_flow else None,
                "wall_time_s": round(timer.wall_s, 3), "frames_per_s": round(len(frames) / timer.wall_s, 3),
                "peak_rss_mb": round(_peak_rss_mb(results), 1), "workers": ex_params.workers}
+    if "rgb" in mods:       # realism metrics of the clean RGB (room_pipeline.realism; real-frame distances: room realism)
+        from ..realism import sequence_metrics
+
+        metrics.update(sequence_metrics(sorted((seq / "rgb").glob("frame_*.png"))))
+        if frame_ev is not None:
+            metrics["exposure_ev_min"], metrics["exposure_ev_max"] = min(frame_ev), max(frame_ev)
     write_metrics(paths, f"render_{sequence}", metrics)
     return metrics
