@@ -43,11 +43,14 @@ Outputs of :meth:`RaycastRenderer.render` (always ``hit``: (H, W) bool)
                        uint8 when ``rgb`` is rendered too.  z equals ``depth``
                        at the pixel, so the cloud re-projects onto the depth
                        map (:func:`write_point_cloud` writes the PLY).
-    ``rgb``            (H, W, 3) uint8 sRGB (:mod:`room_pipeline.render.shading`;
-                       a textured material's per-vertex albedo is interpolated
-                       barycentrically at the hit, :meth:`RaycastRenderer.albedo`);
-                       ``rgb_linear`` (H, W, 3) float32 linear radiance x 2^EV
-                       (before clipping); black where no hit.
+    ``rgb``            (H, W, 3) uint8 (:mod:`room_pipeline.render.shading`; a
+                       textured material's appearance function is evaluated at
+                       every hit, :meth:`RaycastRenderer.albedo_per_pixel`, or its
+                       vertex bake interpolated, :meth:`RaycastRenderer.albedo`;
+                       the frame's exposure (``Film.frame_ev`` when set),
+                       vignetting, veiling glare and response curve applied);
+                       ``rgb_linear`` (H, W, 3) float32 linear radiance x 2^EV x
+                       vignetting (before glare and clipping); black where no hit.
     ``flow``           (H, W, 2) float32 forward flow t -> t+1 and ``flow_valid``
                        (H, W) bool (:mod:`room_pipeline.render.flow`); the last
                        frame has no successor: flow 0, nothing valid.
