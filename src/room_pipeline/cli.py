@@ -21,6 +21,8 @@
         Export a rendered sequence with its ground-truth poses (room_pipeline.export).
     room report [--output-dir DIR] [--out FILE] [--max-frames N] [overrides]
         Write the self-contained HTML report of a dataset (room_pipeline.report).
+    room realism --real DIR [--synth DIR] [--json OUT]
+        Realism statistics of rendered frames against real ones (room_pipeline.realism).
     `room TOOL --help` lists a tool's options.
 
 Bad input ends with one line on stderr ("room: error: ...") and exit status 2.
@@ -266,6 +268,7 @@ TOOLS = {
     "calibrate-noise": ("room_pipeline.noise.cli", "measure a sensor-noise profile from real endoscope frames"),
     "export": ("room_pipeline.export", "export a rendered sequence (COLMAP, nerfstudio, TUM, PLY point clouds)"),
     "report": ("room_pipeline.report.html", "write the self-contained HTML report of a dataset"),
+    "realism": ("room_pipeline.realism", "image statistics of rendered frames against real bronchoscopy frames"),
 }
 
 

@@ -188,6 +188,25 @@ class CyclesSettings:
         return dataclasses.asdict(self)
 
 
+#: candela of the IES profile's peak at which Cycles' IES texture gives Fac = 1 on the axis (so the on-axis
+#: intensity stays the point light's P / (4 pi)): measured on this Blender (a 1000 cd peak rendered 70.6x
+#: the isotropic light); tests/test_realism.py::test_cycles_renders_the_same_scope_light_as_the_ray_caster
+#: fails if a Blender update changes it.
+IES_UNIT_CD = 1000.0 / 70.6
+
+
+def ies_profile(mu: float, n: int = 181) -> str:
+    """An IES LM-63 photometric file with candela ``cos(theta)^mu`` (theta from the light's axis, 0..90 deg;
+    0 beyond) times :data:`IES_UNIT_CD`: the tip light's angular emission
+    (:class:`~room_pipeline.render.scene.TipLight`); its axis is the light's -Z, which is the camera's
+    viewing direction (the light is parented to it)."""
+    th = np.linspace(0.0, 180.0, n)
+    cd = np.where(th < 90.0, np.cos(np.radians(np.minimum(th, 90.0))) ** float(mu), 0.0) * IES_UNIT_CD
+    fmt = lambda a: " ".join(f"{x:.6g}" for x in a)  # noqa: E731
+    return "\n".join(["IESNA:LM-63-2002", "[TEST] room-pipeline tip light cos^mu", "TILT=NONE",
+                      f"1 -1 1 {n} 1 1 2 0 0 0", "1 1 0", fmt(th), "0", fmt(cd)]) + "\n"
+
+
 def linear_to_srgb8(rgb: np.ndarray) -> np.ndarray:
     """Linear RGB (float) -> 8-bit sRGB (IEC 61966-2-1 transfer curve, clipped to [0, 1]), uint8."""
     x = np.clip(np.nan_to_num(np.asarray(rgb, dtype=np.float64), nan=0.0), 0.0, 1.0)
@@ -316,6 +335,16 @@ class CyclesRenderer:
         off = np.asarray(sc.light.offset_m, dtype=np.float64)
         light.location = (off[0], -off[1], -off[2])  # OpenCV camera frame -> Blender camera frame
         light.visible_camera = False  # the emitter sphere surrounds the lens; only its reflections show
+        if sc.light.spot_exponent > 0:    # angular emission cos^mu about the optical axis: an IES profile
+            ld.use_nodes = True
+            nt = ld.node_tree
+            ies = nt.nodes.new("ShaderNodeTexIES")
+            ies.mode = "INTERNAL"
+            txt = bpy.data.texts.new("tip_profile.ies")
+            txt.write(ies_profile(sc.light.spot_exponent))
+            ies.ies = txt
+            em = next(n for n in nt.nodes if n.type == "EMISSION")
+            nt.links.new(ies.outputs["Fac"], em.inputs["Strength"])
 
         # --- no world light: black background
         world = bpy.data.worlds.new("black")

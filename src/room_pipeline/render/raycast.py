@@ -43,11 +43,14 @@ Outputs of :meth:`RaycastRenderer.render` (always ``hit``: (H, W) bool)
                        uint8 when ``rgb`` is rendered too.  z equals ``depth``
                        at the pixel, so the cloud re-projects onto the depth
                        map (:func:`write_point_cloud` writes the PLY).
-    ``rgb``            (H, W, 3) uint8 sRGB (:mod:`room_pipeline.render.shading`;
-                       a textured material's per-vertex albedo is interpolated
-                       barycentrically at the hit, :meth:`RaycastRenderer.albedo`);
-                       ``rgb_linear`` (H, W, 3) float32 linear radiance x 2^EV
-                       (before clipping); black where no hit.
+    ``rgb``            (H, W, 3) uint8 (:mod:`room_pipeline.render.shading`; a
+                       textured material's appearance function is evaluated at
+                       every hit, :meth:`RaycastRenderer.albedo_per_pixel`, or its
+                       vertex bake interpolated, :meth:`RaycastRenderer.albedo`;
+                       the frame's exposure (``Film.frame_ev`` when set),
+                       vignetting, veiling glare and response curve applied);
+                       ``rgb_linear`` (H, W, 3) float32 linear radiance x 2^EV x
+                       vignetting (before glare and clipping); black where no hit.
     ``flow``           (H, W, 2) float32 forward flow t -> t+1 and ``flow_valid``
                        (H, W) bool (:mod:`room_pipeline.render.flow`); the last
                        frame has no successor: flow 0, nothing valid.
@@ -66,7 +69,7 @@ from ..conventions import metadata_block
 from ..io.ply import write_ply
 from . import flow as flowmod
 from .scene import Scene
-from .shading import VIEW_TRANSFORMS, auto_exposure_ev, linear_to_srgb8, shade_coaxial, shade_linear
+from .shading import VIEW_TRANSFORMS, apply_response, auto_exposure_ev, shade_coaxial, shade_linear
 
 MODALITIES = frozenset({"rgb", "depth", "relative_depth", "normals", "flow", "point_cloud", "segmentation",
                         "world_points"})
@@ -87,6 +90,12 @@ class RaycastConfig:
         is within ``abs + rel * z`` of the point's depth ``z``.
     nthreads: Open3D ray-casting threads (0 = all cores).
     cache_frames: how many frames' casts are kept.
+    per_pixel_texture: evaluate the mucosa appearance function at every hit
+        (True) or interpolate its per-vertex bake (False, what Cycles reads).
+    shading_stride: the appearance's smooth noise fields are evaluated every
+        ``shading_stride`` pixels and bilinearly interpolated (the sharp
+        vessel threshold, rings and folds stay per pixel); 1 = every pixel
+        (benchmarks/realism_speed.py: error vs speed).
     """
 
     smooth_normals: bool = True
@@ -95,10 +104,14 @@ class RaycastConfig:
     occlusion_rel_tol: float = 1e-2
     nthreads: int = 0
     cache_frames: int = 2
+    per_pixel_texture: bool = True
+    shading_stride: int = 2
 
     def __post_init__(self) -> None:
         if self.flow_occlusion not in OCCLUSION_MODES:
             raise ValueError(f"flow_occlusion must be one of {OCCLUSION_MODES}, got {self.flow_occlusion!r}")
+        if self.shading_stride < 1:
+            raise ValueError("shading_stride must be >= 1")
         if self.cache_frames < 2:
             raise ValueError("cache_frames must be >= 2 (flow needs frames t and t+1)")
 
@@ -128,8 +141,6 @@ class RaycastRenderer:
         self.config = config or RaycastConfig()
         if scene.film.view_transform not in VIEW_TRANSFORMS:
             raise ValueError(f"film.view_transform must be one of {VIEW_TRANSFORMS}")
-        if scene.light.falloff != "inverse_square":
-            raise ValueError(f"light falloff {scene.light.falloff!r} not supported (inverse_square only)")
         mesh = scene.mesh
         if scene.face_labels is not None and len(scene.face_labels) != mesh.n_faces:
             raise ValueError(f"face_labels has {len(scene.face_labels)} entries for {mesh.n_faces} faces")
@@ -153,6 +164,13 @@ class RaycastRenderer:
             tab = np.zeros((9, mesh.n_faces + 1), dtype=np.float32)
             tab[:, :-1] = np.asarray(va, dtype=np.float32)[mesh.faces].reshape(-1, 9).T
             self._albedo_tab = tab
+        tex = scene.material.texture
+        self._per_pixel = bool(self.config.per_pixel_texture and tex is not None and tex.enabled)
+        self._airway_tab: np.ndarray | None = None
+        if self._per_pixel and scene.vertex_airway is not None:
+            at = np.zeros((12, mesh.n_faces + 1), dtype=np.float32)
+            at[:, :-1] = np.asarray(scene.vertex_airway, dtype=np.float32)[mesh.faces].reshape(-1, 12).T
+            self._airway_tab = at
         self._face_normals: np.ndarray | None = None
         self._corner_normals: np.ndarray | None = None
         vv, uu = np.mgrid[0:cam.height, 0:cam.width]
@@ -308,6 +326,59 @@ class RaycastRenderer:
             self._exposure_ev = auto_exposure_ev(lin, c.hit, film)
         return self._exposure_ev
 
+    def _interp(self, tab: np.ndarray, c: Cast, ncomp: int) -> np.ndarray:
+        """Barycentric interpolation of a per-face corner table (3 * ncomp, F + 1) at the hits: (H*W, ncomp)."""
+        prim = np.where(c.hit, c.prim, np.uint32(tab.shape[1] - 1)).astype(np.intp).reshape(-1)
+        uv = c.uv.reshape(-1, 2)
+        a, b = uv[:, 0], uv[:, 1]
+        w0 = 1 - a - b
+        out = np.empty((len(prim), ncomp), dtype=np.float32)
+        for j in range(ncomp):
+            col = tab[j].take(prim) * w0
+            col += tab[ncomp + j].take(prim) * a
+            col += tab[2 * ncomp + j].take(prim) * b
+            out[:, j] = col
+        return out
+
+    def albedo_per_pixel(self, i: int, c: Cast) -> np.ndarray:
+        """The appearance function evaluated at every hit of frame ``i``: (H, W, 3) float32, 0 where no hit.
+
+        World hit point = pose applied to ``depth * ray``; airway coordinates
+        interpolated barycentrically from the vertices (wrap-free: cos and sin
+        of the angle); noise fields every ``shading_stride`` pixels, bilinear.
+        """
+        from scipy.ndimage import map_coordinates
+
+        from .texture import N_FIELDS, albedo_from_fields, noise_fields
+
+        sc = self.scene
+        tex = sc.material.texture
+        h, w = c.depth.shape
+        pose = sc.poses[i]
+        k = self.config.shading_stride
+        pc = self.camera_points(c)
+        if k == 1:
+            sel_hit = c.hit.reshape(-1)
+            pts = pc.reshape(-1, 3)[sel_hit].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+            f = noise_fields(pts * 1000.0, tex, tex.seed)
+        else:
+            sub = pc[::k, ::k].astype(np.float64)
+            gh, gw = sub.shape[:2]
+            wp = sub.reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+            coarse = noise_fields(wp * 1000.0, tex, tex.seed).reshape(gh, gw, N_FIELDS)
+            coarse[~c.hit[::k, ::k]] = 0.0
+            sel_hit = c.hit.reshape(-1)
+            yy, xx = np.nonzero(c.hit)
+            coords = np.stack([yy / k, xx / k]).astype(np.float32)
+            f = np.stack([map_coordinates(coarse[..., j], coords, order=1, mode="nearest")
+                          for j in range(N_FIELDS)], axis=1)
+        air = None
+        if self._airway_tab is not None:
+            air = self._interp(self._airway_tab, c, 4)[sel_hit]
+        out = np.zeros((h * w, 3), dtype=np.float32)
+        out[sel_hit] = albedo_from_fields(f, tex, tex.seed, sc.material.base_color, air)
+        return out.reshape(h, w, 3)
+
     def albedo(self, c: Cast) -> np.ndarray | None:
         """Per-pixel linear RGB albedo (H, W, 3) float32 of a textured scene (None when untextured).
 
@@ -332,13 +403,13 @@ class RaycastRenderer:
 
     def _linear(self, i: int, c: Cast, normals: np.ndarray, n_dot_ray: np.ndarray) -> np.ndarray:
         light = self.scene.light
-        alb = self.albedo(c)
+        alb = self.albedo_per_pixel(i, c) if self._per_pixel else self.albedo(c)
         if np.any(np.asarray(light.offset_m) != 0):
             return shade_linear(self.camera_points(c), normals, c.hit, self.scene.material, light, alb)
         # light at the camera: cos = -(n . ray) / |ray|, distance^2 = depth^2 |ray|^2
         cos = -n_dot_ray * self._inv_ray_len
         d2 = c.depth * c.depth * self._ray_len2
-        return shade_coaxial(cos, d2, c.hit, self.scene.material, light, alb)
+        return shade_coaxial(cos, d2, c.hit, self.scene.material, light, alb, cos_axis=self._inv_ray_len)
 
     # ------------------------------------------------------------------ render
     def render(self, frame_index: int, modalities: Iterable[str] = ("rgb", "depth")) -> dict[str, np.ndarray]:
@@ -348,7 +419,8 @@ class RaycastRenderer:
         if unknown:
             raise ValueError(f"unknown modalities {sorted(unknown)} (known: {sorted(MODALITIES)})")
         i = self._index(frame_index)
-        ev = self.exposure_ev if "rgb" in mods else None     # may cast the reference frame: before frame i
+        film = self.scene.film
+        ev = (film.ev(i, 0.0) if film.frame_ev is not None else self.exposure_ev) if "rgb" in mods else None
         c = self.cast(i)
         tm = self.timings
         res: dict[str, np.ndarray] = {"hit": c.hit}
@@ -369,8 +441,10 @@ class RaycastRenderer:
             t0 = time.perf_counter()
             lin = self._linear(i, c, normals, n_dot_ray)
             lin *= np.float32(2.0 ** ev)
+            if film.vignetting > 0:
+                lin *= (self._inv_ray_len ** np.float32(film.vignetting))[..., None]
             res["rgb_linear"] = lin
-            res["rgb"] = linear_to_srgb8(lin, 0.0, self.scene.film.view_transform)
+            res["rgb"] = apply_response(lin, film)
             tm["rgb"] += time.perf_counter() - t0
         if "segmentation" in mods:
             t0 = time.perf_counter()
@@ -441,9 +515,11 @@ class RaycastRenderer:
         return {"backend": "open3d_raycast", "config": dataclasses.asdict(self.config),
                 "exposure_ev": self.exposure_ev, "film": dataclasses.asdict(sc.film),
                 "material": dataclasses.asdict(sc.material), "light": dataclasses.asdict(sc.light),
-                "texture": "per-vertex albedo interpolated barycentrically" if self._albedo_tab is not None else None,
-                "shading": "single bounce: Lambert (1 - F) base/pi + GGX/Smith/Schlick specular, point light at "
-                           "the camera, I = P/(4 pi), inverse-square; no indirect light, no subsurface",
+                "texture": ("appearance function per shading point (render.texture)" if self._per_pixel else
+                            "per-vertex albedo interpolated barycentrically" if self._albedo_tab is not None else None),
+                "shading": "single bounce: Lambert (1 - F) base/pi + GGX/Smith/Schlick specular, tip light "
+                           "I = P/(4 pi) cos^spot_exponent, inverse-square or exponential falloff; "
+                           "no indirect light, no subsurface",
                 "camera": sc.camera.to_dict(), "conventions": metadata_block()}
 
 

@@ -49,7 +49,7 @@ VIEW_TRANSFORMS = ("standard",)
 
 
 def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLight,
-              albedo: np.ndarray | None = None) -> np.ndarray:
+              albedo: np.ndarray | None = None, light_scale: np.ndarray | None = None) -> np.ndarray:
     """The BRDF times the irradiance, from per-pixel cosines and squared light distance (float32)."""
     f32 = np.float32
     nl = np.clip(nl, 0.0, 1.0, dtype=f32)
@@ -57,6 +57,8 @@ def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLigh
     nh = np.clip(nh, 0.0, 1.0, dtype=f32)
     intensity = f32(light.power_w / (4.0 * math.pi))
     irradiance = (intensity * nl) / np.maximum(r2, f32(1e-12))                 # E = I cos / r^2
+    if light_scale is not None:                                                 # spot profile, exponential falloff
+        irradiance = irradiance * light_scale
     a = f32(max(material.roughness, 1e-3) ** 2)
     a2 = a * a
     f0 = f32(0.08 * material.specular)
@@ -105,11 +107,31 @@ def shade_linear(points_cam: np.ndarray, normals_cam: np.ndarray, mask: np.ndarr
     l = lv * (1.0 / np.sqrt(np.maximum(r2, f32(1e-30))))[..., None]            # towards the light
     hv = l + v
     h = hv * (1.0 / np.sqrt(np.maximum(dot(hv, hv), f32(1e-30))))[..., None]
-    return _radiance(dot(n, l), dot(n, v), dot(n, h), dot(v, h), r2, mask, material, light, albedo)
+    return _radiance(dot(n, l), dot(n, v), dot(n, h), dot(v, h), r2, mask, material, light, albedo,
+                     light_profile(-l[..., 2], r2, light))
+
+
+def light_profile(cos_axis: np.ndarray, r2: np.ndarray, light: TipLight) -> np.ndarray | None:
+    """Factor on the inverse-square irradiance: spot profile ``cos^mu`` and the exponential falloff option.
+
+    ``cos_axis``: cosine between the optical axis (+z) and the direction from
+    the light to the point; ``r2``: squared distance (m^2).  None when both are off.
+    """
+    f32 = np.float32
+    out = None
+    if light.spot_exponent > 0:
+        out = np.clip(cos_axis, 0.0, 1.0, dtype=f32) ** f32(light.spot_exponent)
+    if light.falloff == "exponential":
+        L = f32(light.falloff_length_m)
+        r2 = np.asarray(r2, dtype=f32)
+        ex = r2 * np.exp(-np.sqrt(r2) / L) / (L * L)                         # (I cos e^{-r/L} / L^2) / (I cos / r^2)
+        out = ex if out is None else out * ex
+    return out
 
 
 def shade_coaxial(cos_nv: np.ndarray, dist2: np.ndarray, mask: np.ndarray | None,
-                  material: TissueMaterial, light: TipLight, albedo: np.ndarray | None = None) -> np.ndarray:
+                  material: TissueMaterial, light: TipLight, albedo: np.ndarray | None = None,
+                  cos_axis: np.ndarray | None = None) -> np.ndarray:
     """:func:`shade_linear` for a light at the camera centre (``offset_m`` = 0): then l = v = h.
 
     ``cos_nv``: (...) cosine between the normal and the direction to the
@@ -118,7 +140,9 @@ def shade_coaxial(cos_nv: np.ndarray, dist2: np.ndarray, mask: np.ndarray | None
     on per-pixel scalars (the renderer's fast path); same values up to float32 rounding.
     """
     c = np.asarray(cos_nv, dtype=np.float32)
-    return _radiance(c, c, c, None, np.asarray(dist2, dtype=np.float32), mask, material, light, albedo)
+    d2 = np.asarray(dist2, dtype=np.float32)
+    return _radiance(c, c, c, None, d2, mask, material, light, albedo, light_profile(cos_axis, d2, light)
+                     if cos_axis is not None else light_profile(np.ones_like(c), d2, light))
 
 
 def luminance(linear_rgb: np.ndarray) -> np.ndarray:
@@ -167,6 +191,32 @@ def linear_to_srgb8(linear_rgb: np.ndarray, exposure_ev: float = 0.0, view_trans
     np.nan_to_num(idx, copy=False, nan=0.0, posinf=_LUT_BINS - 1, neginf=0.0)
     np.clip(idx, 0, _LUT_BINS - 1, out=idx)
     return _LUT[idx.astype(np.int32)]
+
+
+def veiling_glare(x: np.ndarray, g: float) -> np.ndarray:
+    """``(1 - g) x + g mean(x)`` per channel over the image (float32; NaN-safe mean); ``g`` 0: ``x`` unchanged."""
+    if g <= 0:
+        return x
+    m = np.nan_to_num(x.reshape(-1, x.shape[-1]).mean(axis=0, dtype=np.float64)).astype(np.float32)
+    return x * np.float32(1.0 - g) + np.float32(g) * m
+
+
+def apply_response(linear_rgb: np.ndarray, film: Film, exposure_ev: float = 0.0,
+                   vignette: np.ndarray | None = None) -> np.ndarray:
+    """Linear radiance -> 8-bit pixels through the film: exposure, vignetting, response curve, clipping.
+
+    ``film.response`` 'srgb': :func:`linear_to_srgb8`; 'gamma': ``round(255 clip(x)^(1/gamma))``.
+    ``vignette``: optional (H, W) factor.
+    """
+    x = np.asarray(linear_rgb, dtype=np.float32)
+    if vignette is not None:
+        x = x * np.asarray(vignette, dtype=np.float32)[..., None]
+    x = veiling_glare(x * np.float32(2.0 ** exposure_ev), film.veiling_glare)
+    exposure_ev = 0.0
+    if film.response == "srgb":
+        return linear_to_srgb8(x, exposure_ev, film.view_transform)
+    y = np.clip(np.nan_to_num(x * np.float32(2.0 ** exposure_ev), nan=0.0), 0.0, 1.0)
+    return np.rint(255.0 * y ** np.float32(1.0 / film.gamma)).astype(np.uint8)
 
 
 def srgb8_exact(linear_rgb: np.ndarray, exposure_ev: float = 0.0) -> np.ndarray:

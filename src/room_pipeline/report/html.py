@@ -55,6 +55,7 @@ from ..errors import ConfigError, InputError, RoomError
 SECTIONS: tuple[tuple[str, str], ...] = (
     ("summary", "Dataset summary"),
     ("thumbnails", "Modalities"),
+    ("realism", "Real vs synthetic frames"),
     ("view3d", "Trajectory and scope in the airway (3-D)"),
     ("metrics", "Per-stage metrics and timings"),
     ("benchmarks", "Speed vs error (benchmarks)"),
@@ -82,6 +83,7 @@ class ReportOptions:
         scope_frames: frames at which the scope is drawn, >= 0.
         base: folder the shown paths are relative to (default: the current folder).
         use_pyvista: False forces the matplotlib 3-D fallback.
+        real_dir: real bronchoscopy frames shown beside ours (None: the section says why it is empty).
     """
 
     output_dir: Path
@@ -93,6 +95,7 @@ class ReportOptions:
     scope_frames: int = 3
     base: Path | None = None
     use_pyvista: bool = True
+    real_dir: Path | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.max_frames, int) or self.max_frames < 1:
@@ -465,6 +468,61 @@ def section_thumbnails(opts: ReportOptions, patients: list[Path]) -> str:
                 continue
             out.append(sequence_thumbnails(s, opts.max_frames, opts.thumb_px))
     return "\n".join(out) if out else _na("no sequence folders")
+
+
+# =========================================================================== section: real vs synthetic
+
+
+def section_realism(opts: ReportOptions, patients: list[Path], n: int = 6) -> str:
+    """Real frames beside ours (noisy RGB where present, else RGB), evenly spaced, with the realism statistics
+    (:mod:`room_pipeline.realism`, 256 px, no noise spectrum)."""
+    import cv2
+
+    from .. import realism as R
+
+    if opts.real_dir is None or not Path(opts.real_dir).is_dir():
+        return _na("no real frames folder (room report --real-dir DIR; default ../shared/data/bronchoscopy_frames/"
+                   "brea_depth)")
+    ours: list[Path] = []
+    for p in patients:
+        for sq in find_sequence_dirs(p):
+            for sub in ("rgb_noisy", "rgb"):
+                fr = sorted((sq / sub).glob("frame_*.png"))
+                if fr:
+                    ours += fr
+                    break
+    if not ours:
+        return _na("no rendered frames")
+    try:
+        real = R.frame_paths(opts.real_dir)
+    except InputError as e:
+        return _na(str(e))
+
+    def row(paths: list[Path]) -> list[str]:
+        sel = [paths[int(i)] for i in np.linspace(0, len(paths) - 1, min(n, len(paths)))]
+        cells = []
+        for q in sel:
+            im = cv2.imread(str(q), cv2.IMREAD_COLOR)
+            if im is None:
+                cells.append(_na(f"{q.name} unreadable"))
+                continue
+            t = thumbnail(im[..., ::-1].copy(), opts.thumb_px)
+            cells.append(_img(jpeg_uri(t), q.name, t.shape[1], t.shape[0]))
+        return cells
+
+    res = R.evaluate(opts.real_dir, None, n=60, size=256, noise=False, synth_paths=ours)
+    vs, rr = res["real_vs_synth"], res.get("real_vs_real", {})
+    stats = _table(["statistic", "ours vs real", "real vs real (halves)"],
+                   [[k, _fmt(vs.get(k)), _fmt(rr.get(k))] for k in
+                    ("dE76_mean_colour", "L_hist_emd", "radial_profile_mad", "gradient_hist_L1")]
+                   + [["Lab mean (ours / real)", _fmt(res["synth"]["lab_mean"]), _fmt(res["real"]["lab_mean"])],
+                      ["clipped fraction mean / worst frame (ours)",
+                       f"{res['synth']['clipped_fraction_all_frames']:.4f} / "
+                       f"{res['synth']['clipped_max_all_frames']:.4f}", _fmt(res["real"]["clipped_fraction"])]])
+    return (f"<p>Top: real frames (<code>{_esc(_show(Path(opts.real_dir), opts.base))}</code>); bottom: ours "
+            f"({len(ours)} frames). Statistics: <code>room realism</code>.</p>"
+            + _table(["", *[str(i) for i in range(min(n, len(real), len(ours)))]],
+                     [["real", *row(real)], ["ours", *row(ours)]], cls="thumbs", raw=True) + stats)
 
 
 # =========================================================================== section: 3-D view
@@ -1137,6 +1195,7 @@ def build_report(opts: ReportOptions) -> str:
     bodies = {
         "summary": section_summary(opts, patients),
         "thumbnails": section_thumbnails(opts, patients) if patients else _na("no patients"),
+        "realism": section_realism(opts, patients),
         "view3d": section_view3d(opts, patients) if patients else _na("no patients"),
         "metrics": section_metrics(opts, patients),
         "benchmarks": section_benchmarks(opts),
@@ -1178,6 +1237,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=4, help="thumbnail frames per sequence (default 4)")
     parser.add_argument("--benchmarks-dir", help="benchmark results (default: <project>/benchmarks/results)")
     parser.add_argument("--tables-dir", help="paper tables (default: evaluate.tables.output_dir, i.e. reports/)")
+    parser.add_argument("--real-dir", help="real bronchoscopy frames shown beside ours "
+                                           "(default: ../shared/data/bronchoscopy_frames/brea_depth when present)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of the composed config (key=value)")
 
 
@@ -1219,8 +1280,10 @@ def options_from_args(args: argparse.Namespace) -> tuple[ReportOptions, Path]:
             sub = OmegaConf.select(cfg, "evaluate.tables.output_dir", default=None)
         tables = under(str(sub or "reports"))
     bench = Path(args.benchmarks_dir) if args.benchmarks_dir is not None else under("benchmarks/results")
+    real = (Path(args.real_dir) if getattr(args, "real_dir", None)
+            else base.parent / "shared" / "data" / "bronchoscopy_frames" / "brea_depth")
     opts = ReportOptions(output_dir=output_dir, benchmarks_dir=bench, tables_dir=tables,
-                         max_frames=args.max_frames, base=base)
+                         max_frames=args.max_frames, base=base, real_dir=real if real.is_dir() else None)
     out = Path(args.out) if args.out else output_dir / "report.html"
     return opts, out
 

@@ -27,9 +27,11 @@ processes or Ray actors), each building its renderers once
 worker's :class:`~room_pipeline.io.storage.FrameWriter`, whose threads encode
 and write them atomically while the next frame is cast; a block returns its
 records once all its files are on disk).  Everything computed once per sequence is computed here, before the
-fan-out: face labels, the automatic exposure (the ray caster's and, with
-backend ``cycles``, Cycles' own, on the film's reference frame) and the
-renderer metadata; the workers get the exposure fixed.  So the backend and the
+fan-out: face labels, the vertices' airway coordinates, the automatic
+exposure (by default the ray caster's per-frame exposures from a sequential
+meter pre-pass, :mod:`room_pipeline.render.exposure`; with backend
+``cycles``, Cycles' own EV on the film's reference frame) and the renderer
+metadata; the workers get the exposures fixed.  So the backend and the
 number of workers change no byte of the outputs.
 """
 from __future__ import annotations
@@ -57,7 +59,7 @@ from ..io.storage import POINT_CLOUD_JSON, FrameWriter, StorageParams, stride_ma
 from ..io.mesh import Mesh, read_obj
 from ..render.camera import CameraIntrinsics
 from ..render.scene import Film, Scene, TipLight, TissueMaterial
-from ..render.texture import MucosaTexture
+from ..render.texture import MucosaTexture, airway_coordinates
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 from .trajectory import split_key
 
@@ -85,8 +87,24 @@ class RenderParams:
     specular: float = 0.5
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
+    light_offset_mm: tuple = (0.0, 0.0, 0.0)
+    light_spot_exponent: float = 0.0
+    light_falloff: str = "inverse_square"
+    light_falloff_length_mm: float = 20.0
     exposure_ev: float | None = None
+    auto_exposure: str = "per_frame"
     auto_exposure_target: float = 0.8
+    auto_exposure_percentile: float = 95.0
+    auto_exposure_smoothing_s: float = 0.3
+    auto_exposure_min_ev: float = -12.0
+    auto_exposure_max_ev: float = 12.0
+    auto_exposure_highlight_percentile: float = 99.0
+    auto_exposure_highlight_max: float = 0.9
+    vignetting: float = 0.0
+    veiling_glare: float = 0.0
+    response: str = "srgb"
+    gamma: float = 2.2
+    shading_stride: int = 2
     texture: dict = dataclasses.field(default_factory=dict)
     cycles_samples: int = 16
     cycles_denoise: bool = True
@@ -112,7 +130,41 @@ class RenderParams:
             raise ConfigError(f"render: 0 < near_mm < far_mm required, got near_mm={p.near_mm}, far_mm={p.far_mm}")
         texture_params(p.texture)
         StorageParams.from_dict(p.storage)
+        if p.auto_exposure not in ("per_frame", "first_frame"):
+            raise ConfigError(f"render.auto_exposure must be 'per_frame' or 'first_frame', got {p.auto_exposure!r}")
+        if len(p.light_offset_mm) != 3:
+            raise ConfigError(f"render.light_offset_mm must be 3 numbers (camera frame, mm), got {p.light_offset_mm!r}")
+        if p.shading_stride < 1:
+            raise ConfigError(f"render.shading_stride must be >= 1, got {p.shading_stride}")
+        try:
+            scene_parts(p)
+            exposure_params(p)
+        except ValueError as e:
+            raise ConfigError(f"render: {str(e).splitlines()[0]}") from None
         return p
+
+
+def exposure_params(p: "RenderParams"):
+    """The per-frame automatic exposure's parameters (render.auto_exposure_*)."""
+    from ..render.exposure import ExposureParams
+
+    return ExposureParams(target=p.auto_exposure_target, percentile=p.auto_exposure_percentile,
+                          smoothing_s=p.auto_exposure_smoothing_s, min_ev=p.auto_exposure_min_ev,
+                          max_ev=p.auto_exposure_max_ev, highlight_percentile=p.auto_exposure_highlight_percentile,
+                          highlight_max=p.auto_exposure_highlight_max)
+
+
+def scene_parts(p: "RenderParams") -> tuple[TissueMaterial, TipLight, Film]:
+    """Material, tip light and film of the render config (lengths mm -> m)."""
+    material = TissueMaterial(base_color=tuple(p.base_color), roughness=p.roughness, specular=p.specular,
+                              texture=texture_params(p.texture))
+    light = TipLight(power_w=p.light_power_w, radius_m=p.light_radius_mm * MM,
+                     offset_m=tuple(float(x) * MM for x in p.light_offset_mm), falloff=p.light_falloff,
+                     falloff_length_m=p.light_falloff_length_mm * MM, spot_exponent=p.light_spot_exponent)
+    film = Film(exposure_ev=p.exposure_ev, auto_target=p.auto_exposure_target,
+                auto_percentile=p.auto_exposure_percentile, response=p.response, gamma=p.gamma,
+                vignetting=p.vignetting, veiling_glare=p.veiling_glare)
+    return material, light, film
 
 
 def texture_params(d: Mapping[str, Any] | None) -> MucosaTexture:
@@ -183,7 +235,7 @@ class _Renderers:
                  cycles_threads: int = 0) -> None:
         from ..render.raycast import RaycastConfig, RaycastRenderer
 
-        self.raycast = RaycastRenderer(scene, RaycastConfig(nthreads=nthreads))
+        self.raycast = RaycastRenderer(scene, RaycastConfig(nthreads=nthreads, shading_stride=p.shading_stride))
         self.cycles = None
         if p.backend == "cycles":
             from ..render.blender import CyclesRenderer
@@ -197,7 +249,17 @@ class _Renderers:
 
         out = self.raycast.render(i, mods - {"rgb"})
         if "rgb" in mods:
-            out["rgb"] = linear_to_srgb8(self.cycles.render(i, ("rgb",))["rgb"])
+            lin = self.cycles.render(i, ("rgb",))["rgb"]
+            film = self.raycast.scene.film
+            if film.frame_ev is None and film.vignetting == 0 and film.response == "srgb" and not film.veiling_glare:
+                out["rgb"] = linear_to_srgb8(lin)
+            else:        # the per-frame exposure, vignetting and response, as the ray caster applies them
+                from ..render.shading import apply_response
+
+                lin = lin * np.float32(2.0 ** (film.ev(i, 0.0) - self.cycles.exposure_ev)) if film.frame_ev else lin
+                if film.vignetting > 0:
+                    lin = lin * (self.raycast._inv_ray_len ** np.float32(film.vignetting))[..., None]
+                out["rgb"] = apply_response(lin, film)
             if "point_cloud" in out:
                 out["point_cloud_colors"] = out["rgb"][out["hit"]]
         return out
@@ -208,7 +270,12 @@ class _Renderers:
 
 
 def _exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | None]:
-    """What is computed once per sequence, in the driver: (renderer metadata, ray-caster EV, Cycles EV).
+    """What is computed once per sequence, in the driver: (renderer metadata, ray-caster EV, Cycles EV, per-frame EVs).
+
+    With ``render.auto_exposure: per_frame`` (and no fixed ``exposure_ev``) the
+    ray caster's per-frame exposures come from a sequential meter pre-pass
+    here, before the fan-out (:mod:`room_pipeline.render.exposure`), so they
+    do not depend on the executor; Cycles keeps one EV per sequence.
 
     Both automatic exposures are chosen on the film's reference frame by the
     renderer that uses them (Cycles renders that frame once here, with the film
@@ -223,14 +290,25 @@ def _exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | 
         settings = _cycles_settings(p)
         with CyclesRenderer(scene, settings) as cy:
             cycles_ev = cy.exposure_ev
+    frame_ev = None
+    if p.exposure_ev is None and p.auto_exposure == "per_frame":
+        from ..render.exposure import exposure_track
+
+        frame_ev = exposure_track(scene, exposure_params(p))
+        scene = dataclasses.replace(scene, film=dataclasses.replace(scene.film, frame_ev=frame_ev))
     probe = RaycastRenderer(scene)
     meta = probe.metadata()                      # computes the automatic EV (one cast of the reference frame)
     ev = probe.exposure_ev
+    if frame_ev is not None:
+        meta["auto_exposure"] = {"mode": "per_frame", "params": dataclasses.asdict(exposure_params(p)),
+                                 "frame_ev": list(frame_ev),
+                                 "method": "room_pipeline.render.exposure: low-resolution meter pass, percentile "
+                                           "luminance -> target, causal exponential smoothing in EV, clamped"}
     if settings is not None:
         meta = {"rgb": {"backend": "blender_cycles", "exposure_ev": cycles_ev,
                         "settings": dataclasses.asdict(settings)},
                 "geometry": meta}
-    return meta, ev, cycles_ev
+    return meta, ev, cycles_ev, frame_ev
 
 
 def _drop_inherited_bpy_paths() -> None:
@@ -371,15 +449,16 @@ def run(cfg: DictConfig, key: str) -> dict:
         ensure_writable(*(seq / f for f in FOLDERS.values()), seq / "calibration", seq / "metadata")
         remove_stale_temp_files(seq)
         mesh = read_obj(paths.mesh)
-        labels, legend = face_labels(mesh, CentrelineGraph.from_dict(read_json(paths.centreline_graph)))
+        graph = CentrelineGraph.from_dict(read_json(paths.centreline_graph))
+        labels, legend = face_labels(mesh, graph)
         cam = CameraIntrinsics.from_fov(p.width, p.height, p.fov_deg, p.near_mm * MM, p.far_mm * MM)
-        scene = Scene(mesh, cam, poses[src], ts[src],
-                      material=TissueMaterial(base_color=tuple(p.base_color), roughness=p.roughness,
-                                              specular=p.specular, texture=texture_params(p.texture)),
-                      light=TipLight(power_w=p.light_power_w, radius_m=p.light_radius_mm * MM),
-                      film=Film(exposure_ev=p.exposure_ev, auto_target=p.auto_exposure_target), face_labels=labels)
-        renderer_meta, ev, cycles_ev = _exposure_once(scene, p)
-        scene.film = dataclasses.replace(scene.film, exposure_ev=ev)      # every worker: the same fixed EV
+        material, light, film = scene_parts(p)
+        airway = airway_coordinates(mesh.vertices, graph) if material.texture.enabled else None
+        scene = Scene(mesh, cam, poses[src], ts[src], material=material, light=light, film=film,
+                      face_labels=labels, vertex_airway=airway)
+        renderer_meta, ev, cycles_ev, frame_ev = _exposure_once(scene, p)
+        # every worker: the same exposures (fixed EV, or the per-frame track of the driver's meter pass)
+        scene.film = dataclasses.replace(scene.film, exposure_ev=ev, frame_ev=frame_ev)
         # each worker's Open3D casts and Cycles get the executor's per-worker thread budget (0: all cores)
         nthreads = ex_params.threads if parallel else 0
         cycles_threads = ex_params.threads if parallel else 0
@@ -412,5 +491,11 @@ def run(cfg: DictConfig, key: str) -> dict:
                "flow_valid_fraction_mean": round(float(np.mean(n_valid_flow)), 6) if n_valid_flow else None,
                "wall_time_s": round(timer.wall_s, 3), "frames_per_s": round(len(frames) / timer.wall_s, 3),
                "peak_rss_mb": round(_peak_rss_mb(results), 1), "workers": ex_params.workers}
+    if "rgb" in mods:       # realism metrics of the clean RGB (room_pipeline.realism; real-frame distances: room realism)
+        from ..realism import sequence_metrics
+
+        metrics.update(sequence_metrics(sorted((seq / "rgb").glob("frame_*.png"))))
+        if frame_ev is not None:
+            metrics["exposure_ev_min"], metrics["exposure_ev_max"] = min(frame_ev), max(frame_ev)
     write_metrics(paths, f"render_{sequence}", metrics)
     return metrics

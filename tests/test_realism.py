@@ -1,0 +1,325 @@
+"""Realism (issue #15): airway coordinates and anatomy, scope light, per-frame exposure, hard views, `room realism`."""
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from room_pipeline.anatomy.centreline import CentrelineGraph, GraphBranch
+from room_pipeline.errors import InputError
+from room_pipeline.io.mesh import Mesh
+from room_pipeline.render.camera import CameraIntrinsics
+from room_pipeline.render.exposure import ExposureParams, exposure_track, smooth_exposures
+from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+from room_pipeline.render.scene import Film, Scene, TipLight, TissueMaterial
+from room_pipeline.render.texture import MucosaTexture, airway_coordinates, anatomy_factor, mucosa_albedo
+
+from .test_raycast import look, tube
+
+MM = 1e-3
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT.parent / "shared" / "data" / "bronchoscopy_frames" / "brea_depth"
+TEX = MucosaTexture()
+CAM = CameraIntrinsics.from_fov(64, 64, 85.0)
+# the default scope light: LED 1.1 mm off the optical centre, spot mu 2.767 (EndoMapper)
+LIGHT = TipLight(offset_m=(0.0, -1.1 * MM, 0.0), spot_exponent=2.767)
+EXP = ExposureParams(target=0.43, min_ev=-12.0, max_ev=12.0)
+
+
+def straight_graph(z0=-5 * MM, z1=200 * MM, generation=0) -> CentrelineGraph:
+    z = np.linspace(z0, z1, 60)
+    return CentrelineGraph([GraphBranch(0, -1, generation, np.stack([0 * z, 0 * z, z], 1), np.full(60, 5 * MM))])
+
+
+def textured_scene(mesh, poses, graph=None, **kw) -> Scene:
+    air = airway_coordinates(mesh.vertices, graph) if graph is not None else None
+    return Scene(mesh, kw.pop("camera", CAM), np.asarray(poses), np.arange(len(poses)) * 0.1,
+                 material=TissueMaterial(base_color=(0.8, 0.5, 0.54), texture=TEX), light=kw.pop("light", LIGHT),
+                 vertex_airway=air, **kw)
+
+
+def render_auto(sc: Scene) -> tuple[list[np.ndarray], tuple]:
+    """Every frame with the per-frame automatic exposure (as the render stage does)."""
+    evs = exposure_track(sc, EXP)
+    sc = dataclasses.replace(sc, film=dataclasses.replace(sc.film, frame_ev=evs))
+    r = RaycastRenderer(sc)
+    return [r.render(i, {"rgb"}) for i in range(len(sc.poses))], evs
+
+
+def assert_sane(outs, evs):
+    for o in outs:
+        assert np.all(np.isfinite(o["rgb_linear"]))
+        rgb = o["rgb"]
+        white = (rgb >= 250).any(-1).mean()
+        assert white < 0.05, f"{white:.3f} of the frame clipped"
+        assert rgb.mean() > 5, "all-black frame"
+    assert all(EXP.min_ev <= e <= EXP.max_ev for e in evs)
+
+
+# --------------------------------------------------------------------------- airway coordinates, anatomy
+
+
+def test_airway_coordinates_of_a_straight_trachea():
+    g = straight_graph()
+    p = np.array([[0, -5 * MM, 10 * MM], [5 * MM, 0, 20 * MM], [0, 5 * MM, 30 * MM], [-5 * MM, 0, 30 * MM]])
+    a = airway_coordinates(p, g)
+    np.testing.assert_allclose(a[:, 0], [15, 25, 35, 35], atol=2.0)         # arc length from the start, mm
+    np.testing.assert_allclose(a[:, 1], [1, 0, -1, 0], atol=1e-6)           # cos theta: 1 = posterior (RAS -y)
+    np.testing.assert_allclose(np.abs(a[[1, 3], 2]), [1, 1], atol=1e-6)
+    assert np.all(a[:, 3] == 0)
+    empty = airway_coordinates(p, None)
+    assert np.all(empty[:, 0] == 0) and np.all(empty[:, 1] == 1)
+    assert airway_coordinates(np.zeros((0, 3)), g).shape == (0, 4)
+
+
+def test_rings_in_the_trachea_not_on_the_membranous_wall_folds_deeper():
+    s = np.linspace(0, 60, 601)
+    ant = np.stack([s, -np.ones_like(s), 0 * s, 0 * s], 1)                  # anterior wall, trachea
+    post = np.stack([s, np.ones_like(s), 0 * s, 0 * s], 1)                  # posterior (membranous) wall
+    fa, fp = anatomy_factor(ant, TEX)[:, 0], anatomy_factor(post, TEX)[:, 0]
+    assert fa.max() - fa.min() > 0.8 * TEX.ring_strength                    # rings show anteriorly ...
+    per = np.fft.rfft(fa - fa.mean())
+    assert np.argmax(np.abs(per)) == round(60 / TEX.ring_spacing_mm)        # ... every ring_spacing_mm
+    assert np.ptp(fp) < 1e-9                                                # ... and not on the membranous wall
+    th = np.linspace(-np.pi, np.pi, 721)
+    deep = np.stack([0 * th + 3.0, np.cos(th), np.sin(th), 0 * th + 4], 1)  # generation 4: folds around
+    fd = anatomy_factor(deep, TEX)[:, 0]
+    spec = np.abs(np.fft.rfft(fd - fd.mean()))
+    assert np.argmax(spec) == TEX.fold_count
+    # colour with depth: redder (G, B lower relative to R) in deeper generations
+    g0 = anatomy_factor(np.array([[3.0, 0, 1, 0]]), TEX)[0]
+    g5 = anatomy_factor(np.array([[3.0, 0, 1, 5]]), TEX)[0]
+    assert g5[1] / g5[0] < g0[1] / g0[0]
+
+
+def test_appearance_is_per_shading_point_not_per_vertex():
+    """On a coarse tube (long triangles, ~8 mm along the axis) the rings still show at their 6 mm spacing."""
+    mesh = tube(radius=5 * MM, z0=-5 * MM, z1=120 * MM, n_theta=24, n_z=16)
+    g = straight_graph()
+    pose = look([0, 4.0 * MM, 20 * MM], [0, 0, 1.0], down=(0, 1, 0))
+    sc = textured_scene(mesh, [pose], g, camera=CameraIntrinsics.from_fov(96, 96, 85.0),
+                        film=Film(exposure_ev=3.0))
+    alb = RaycastRenderer(sc).albedo_per_pixel(0, RaycastRenderer(sc).cast(0))
+    assert np.all(np.isfinite(alb))
+    bake = RaycastRenderer(sc, RaycastConfig(per_pixel_texture=False))
+    b = bake.albedo(bake.cast(0))
+    # the per-pixel albedo has detail the vertex bake cannot (rings between the 8 mm vertex rows)
+    hit = bake.cast(0).hit
+    assert np.std(np.diff(alb[..., 1], axis=0)[hit[1:] & hit[:-1]]) > 1.5 * np.std(
+        np.diff(b[..., 1], axis=0)[hit[1:] & hit[:-1]])
+
+
+# --------------------------------------------------------------------------- light
+
+
+def test_spot_profile_and_exponential_falloff():
+    from room_pipeline.render.shading import light_profile
+
+    iso = TipLight()
+    assert light_profile(np.ones(3), np.ones(3), iso) is None
+    spot = TipLight(spot_exponent=2.767)
+    np.testing.assert_allclose(light_profile(np.array([1.0, 0.5, 0.0]), np.ones(3), spot),
+                               [1.0, 0.5 ** 2.767, 0.0], rtol=1e-5)
+    ex = TipLight(falloff="exponential", falloff_length_m=0.02)
+    r = np.array([0.01, 0.02, 0.04])
+    f = light_profile(np.ones(3), r * r, ex)
+    np.testing.assert_allclose(f / (r * r), np.exp(-r / 0.02) / 0.02 ** 2, rtol=1e-4)   # I cos e^{-r/L} / L^2
+    with pytest.raises(ValueError):
+        TipLight(falloff="linear")
+
+
+# --------------------------------------------------------------------------- exposure
+
+
+def test_smoothing_is_causal_bounded_and_deterministic():
+    ts = np.arange(50) * 0.1
+    raw = np.where(np.arange(50) < 20, -2.0, 3.0)
+    a = smooth_exposures(raw, ts, EXP)
+    assert np.all(a[:20] == -2.0)
+    assert np.all(np.diff(a[20:]) >= 0) and a[20] < 3.0 and abs(a[-1] - 3.0) < 0.01
+    assert a.tobytes() == smooth_exposures(raw.copy(), ts, EXP).tobytes()
+    clamp = smooth_exposures(np.array([50.0, -50.0]), np.array([0.0, 100.0]), EXP)
+    assert clamp.tolist() == [EXP.max_ev, EXP.min_ev]
+    assert smooth_exposures(raw, ts, dataclasses.replace(EXP, smoothing_s=0.0)).tolist() == raw.tolist()
+    with pytest.raises(ValueError):
+        ExposureParams(min_ev=1.0, max_ev=0.0)
+
+
+def test_exposure_follows_the_scene_no_blowout_near_the_wall():
+    """Approaching the wall the gain drops (a fixed first-frame exposure would blow the frame out)."""
+    mesh = tube(radius=5 * MM, z0=-5 * MM, z1=120 * MM)
+    poses = [look([0, 0, 10 * MM], [0, 0, 1.0])] + [look([0, 4.5 * MM, 40 * MM], [0, 1.0, 0.3])] * 3
+    sc = textured_scene(mesh, poses, straight_graph())
+    sc.timestamps = np.arange(4) * 1.0                        # 1 s apart: the smoothing (0.3 s) settles
+    outs, evs = render_auto(sc)
+    assert evs[-1] < evs[0] - 1.0
+    assert_sane(outs, evs)
+    fixed = RaycastRenderer(dataclasses.replace(sc, film=Film(exposure_ev=evs[0]))).render(3, {"rgb"})["rgb"]
+    assert (fixed >= 250).any(-1).mean() > (outs[3]["rgb"] >= 250).any(-1).mean()
+
+
+# --------------------------------------------------------------------------- hard views
+
+
+def test_camera_half_a_millimetre_from_the_wall():
+    mesh = tube(radius=5 * MM, z0=-5 * MM, z1=60 * MM)
+    poses = [look([0, 4.5 * MM, 20 * MM], [0, 1.0, 0.0]), look([0, 4.5 * MM, 20 * MM], [0, 1.0, 0.2])]
+    outs, evs = render_auto(textured_scene(mesh, poses, straight_graph()))
+    assert_sane(outs, evs)
+
+
+def test_looking_down_a_long_dark_bronchus():
+    mesh = tube(radius=2 * MM, z0=-5 * MM, z1=300 * MM, n_z=200)
+    poses = [look([0, 0, 0], [0, 0, 1.0])]
+    outs, evs = render_auto(textured_scene(mesh, poses, straight_graph(z1=300 * MM, generation=5)))
+    assert_sane(outs, evs)
+    assert (outs[0]["rgb"].max(-1) <= 10).mean() > 0.01       # the far lumen is dark, as in a real scope
+
+
+def bifurcation() -> tuple[Mesh, CentrelineGraph]:
+    """A parent tube and two children meeting at a carina (open tubes; not watertight, fine for ray casting)."""
+    parts, off = [], 0
+    vs, fs = [], []
+    for ang, z0, z1, r in ((0.0, -40 * MM, 0.0, 6 * MM), (0.5, 0.0, 40 * MM, 4 * MM), (-0.5, 0.0, 40 * MM, 4 * MM)):
+        m = tube(radius=r, z0=z0, z1=z1, n_theta=48, n_z=40)
+        v = m.vertices.copy()
+        c, s = np.cos(ang), np.sin(ang)
+        v = v @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]).T
+        vs.append(v)
+        fs.append(m.faces + off)
+        off += len(v)
+    mesh = Mesh(np.concatenate(vs), np.concatenate(fs))
+    z = np.linspace(-40 * MM, 0, 20)
+    trunk = GraphBranch(0, -1, 0, np.stack([0 * z, 0 * z, z], 1), np.full(20, 6 * MM))
+    kids = []
+    for bid, ang in ((1, 0.5), (2, -0.5)):
+        t = np.linspace(0, 40 * MM, 20)
+        kids.append(GraphBranch(bid, 0, 1, np.stack([np.sin(ang) * t, 0 * t, np.cos(ang) * t], 1),
+                                np.full(20, 4 * MM)))
+    return mesh, CentrelineGraph([trunk, *kids])
+
+
+def test_bifurcation_close_up_and_a_fold_in_shadow():
+    mesh, g = bifurcation()
+    poses = [look([0, 0, -3 * MM], [0, 0, 1.0]),                            # carina 3 mm ahead
+             look([0, 5.5 * MM, -20 * MM], [0, -0.05, 1.0])]                 # grazing along the wall: light barely reaches it
+    outs, evs = render_auto(textured_scene(mesh, poses, g))
+    assert_sane(outs, evs)
+
+
+def test_nothing_lit_gives_black_not_nan_and_bounded_exposure():
+    mesh = tube(radius=5 * MM, z0=-5 * MM, z1=60 * MM)
+    sc = textured_scene(mesh, [look([0, 0, -50 * MM], [0, 0, -1.0])], straight_graph())   # looking away: no hit
+    evs = exposure_track(sc, EXP)
+    assert evs == (0.0,)
+    out = RaycastRenderer(dataclasses.replace(sc, film=Film(frame_ev=evs))).render(0, {"rgb"})
+    assert np.all(np.isfinite(out["rgb_linear"])) and out["rgb"].max() == 0
+
+
+# --------------------------------------------------------------------------- room realism
+
+
+def test_realism_statistics_and_floor(tmp_path):
+    import cv2
+
+    from room_pipeline import realism as R
+
+    rng = np.random.default_rng(0)
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir(), b.mkdir()
+    for i in range(6):
+        im = np.clip(rng.normal(120, 20, (64, 64, 3)), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(a / f"f{i}.png"), im)
+        cv2.imwrite(str(b / f"f{i}.png"), np.clip(im.astype(int) + 60, 0, 255).astype(np.uint8))
+    same = R.evaluate(a, a, size=64)
+    assert same["real_vs_synth"]["dE76_mean_colour"] == 0 and same["real_vs_synth"]["L_hist_emd"] == 0
+    assert same["real_vs_synth"]["noise_lsd_db"] == 0 and "real_vs_real" in same
+    brighter = R.evaluate(a, b, size=64, noise=False)
+    assert brighter["real_vs_synth"]["dE76_mean_colour"] > 10 and brighter["real_vs_synth"]["L_hist_emd"] > 10
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no frames"):
+        R.frame_paths(tmp_path / "empty")
+    with pytest.raises(InputError, match="no such folder"):
+        R.frame_paths(tmp_path / "missing")
+
+
+def test_room_realism_cli_errors(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "realism", "--real", str(tmp_path / "nope")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.strip().startswith("room: error:") and "nope" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="shared BREA-Depth frames not present (../shared/data)")
+def test_real_vs_real_floor_on_the_shared_frames():
+    from room_pipeline import realism as R
+
+    res = R.evaluate(REAL, None, size=128, noise=False)
+    f = res["real_vs_real"]
+    assert 0 < f["dE76_mean_colour"] < 8 and 0 < f["L_hist_emd"] < 10
+    assert res["real"]["clipped_fraction"] < 0.01
+
+
+def test_report_shows_real_frames_beside_ours(tmp_path):
+    import cv2
+
+    from room_pipeline.report import html as rh
+
+    real, ds = tmp_path / "real", tmp_path / "ds"
+    seq = ds / "patient_x" / "sequence_000" / "rgb_noisy"
+    real.mkdir()
+    seq.mkdir(parents=True)
+    (seq.parent / "metadata").mkdir()
+    rng = np.random.default_rng(1)
+    for i in range(4):
+        cv2.imwrite(str(real / f"r{i}.jpg"), rng.integers(0, 255, (48, 48, 3), dtype=np.uint8))
+        cv2.imwrite(str(seq / f"frame_{i:04d}.png"), rng.integers(0, 255, (48, 48, 3), dtype=np.uint8))
+    s = rh.section_realism(rh.ReportOptions(output_dir=ds, real_dir=real), [ds / "patient_x"])
+    assert s.count("<img ") == 8 and "dE76_mean_colour" in s
+    assert "not available" in rh.section_realism(rh.ReportOptions(output_dir=ds), [ds / "patient_x"])
+
+
+def test_cycles_renders_the_same_scope_light_as_the_ray_caster():
+    """Spot profile cos^mu (an IES profile in Cycles) and the LED offset: direct light, diffuse, the two agree;
+    dropping the profile on one side costs well over 6 dB."""
+    pytest.importorskip("bpy")
+    from room_pipeline.render.blender import CyclesRenderer, CyclesSettings, linear_to_srgb8
+
+    from .test_texture import _psnr
+
+    mesh = tube(radius=5 * MM, z0=-5 * MM, z1=60 * MM, n_theta=80, n_z=80)
+    cam = CameraIntrinsics.from_fov(64, 64, 85.0)
+    poses = [look([1 * MM, 0.5 * MM, 0], [0.25, 0.1, 1.0])]
+    st = CyclesSettings(samples=64, adaptive_threshold=0.0, denoise=True, max_bounces=0, threads=2,
+                        filter_width=0.01)
+    res = {}
+    for name, light in (("spot", TipLight(radius_m=1e-6, offset_m=(0.0, -1.1 * MM, 0.0), spot_exponent=2.767)),
+                        ("iso", TipLight(radius_m=1e-6, offset_m=(0.0, -1.1 * MM, 0.0)))):
+        sc = Scene(mesh, cam, np.asarray(poses), np.zeros(1), light=light, film=Film(exposure_ev=4.0),
+                   material=TissueMaterial(base_color=(0.8, 0.5, 0.54), specular=0.0))
+        rc = RaycastRenderer(sc).render(0, {"rgb"})["rgb"]
+        with CyclesRenderer(sc, st) as r:
+            cy = linear_to_srgb8(r.render(0, ("rgb",))["rgb"])
+        res[name] = (rc, cy)
+    p_spot, p_cross = _psnr(*res["spot"]), _psnr(res["spot"][1], res["iso"][0])
+    print(f"PSNR raycast vs Cycles with the spot profile: {p_spot:.1f} dB; vs isotropic raycast {p_cross:.1f} dB")
+    assert p_spot > 35.0 and p_spot > p_cross + 6.0
+
+
+def test_veiling_glare_keeps_energy_and_lifts_the_dark():
+    from room_pipeline.render.shading import apply_response, veiling_glare
+
+    x = np.zeros((8, 8, 3), np.float32)
+    x[:4] = 0.5
+    y = veiling_glare(x, 0.1)
+    np.testing.assert_allclose(y.mean(axis=(0, 1)), x.mean(axis=(0, 1)), rtol=1e-6)   # energy kept
+    assert y[6, 6, 0] > 0 and y[0, 0, 0] < 0.5
+    assert veiling_glare(x, 0.0) is x
+    a = apply_response(x, Film(veiling_glare=0.1))
+    assert a[6, 6, 0] > 0 and apply_response(x, Film())[6, 6, 0] == 0
+    with pytest.raises(ValueError):
+        Film(veiling_glare=1.0)
