@@ -72,12 +72,18 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-masks", action="store_true")
+    ap.add_argument("--masks-only", action="store_true",
+                    help="keep the config rows of the last results/config_validation.json, time the masks")
     args = ap.parse_args()
     import tempfile
 
     rows = []
+    prev = ROOT / "benchmarks" / "results" / "config_validation.json"
+    if args.masks_only and prev.is_file():
+        old = json.loads(prev.read_text(encoding="utf-8"))
+        rows, args.repeats = old["config_errors"], old["repeats"]
     with tempfile.TemporaryDirectory() as tmp:
-        for case in CASES:
+        for case in ([] if args.masks_only else CASES):
             runs = [time_config_error(case, Path(tmp) / "out") for _ in range(args.repeats)]
             best = min(runs, key=lambda r: r["wall_s"])
             rows.append(dict(best, wall_s_max=max(r["wall_s"] for r in runs),
@@ -85,7 +91,7 @@ def main() -> int:
                              ok=all(r["exit"] == 2 and r["lines"] == 1 and not r["stage_started"] for r in runs)))
             print(f"{best['overrides']:<40} exit {best['exit']} lines {best['lines']} wall {best['wall_s']:.2f}-"
                   f"{rows[-1]['wall_s_max']:.2f} s cpu <= {rows[-1]['cpu_s_max']:.2f} s", flush=True)
-    load = os.getloadavg()
+    load = os.getloadavg() if not args.masks_only else tuple(old["load_average"])
     masks = []
     if not args.no_masks:
         shared = Path(os.environ.get("ROOM_SHARED_DATA", ROOT.parent / "shared" / "data"))
@@ -95,6 +101,7 @@ def main() -> int:
                 masks.append(m)
                 print(f"{rel:<55} {m['cpu_s']:6.2f} s cpu  {m['verdict']}", flush=True)
     doc = {"config_errors": rows, "masks": masks, "load_average": [round(x, 2) for x in load],
+           "load_average_masks": [round(x, 2) for x in os.getloadavg()],
            "cpu_count": os.cpu_count(), "repeats": args.repeats}
     res = ROOT / "benchmarks" / "results"
     res.mkdir(parents=True, exist_ok=True)
@@ -111,6 +118,7 @@ def main() -> int:
                   f"{r['wall_s']:.2f}-{r['wall_s_max']:.2f} | {r['cpu_s_max']:.2f} | {r['message'][13:110]} |")
     if masks:
         md += ["", "## `check_mask` on the shared real airway masks (CPU time, excluding reading the file)", "",
+               f"(load average {', '.join(f'{x:.2f}' for x in os.getloadavg())} when timed)", "",
                "| mask | shape | CPU s | verdict |", "|---|---|---|---|"]
         md += [f"| {m['mask']} | {'x'.join(map(str, m['shape']))} | {m['cpu_s']:.2f} | {m['verdict']} |" for m in masks]
     (res / "config_validation.md").write_text("\n".join(md) + "\n", encoding="utf-8")

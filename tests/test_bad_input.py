@@ -470,8 +470,8 @@ def test_config_error_of_a_late_stage_reported_by_an_early_one(tree, tmp_path, b
 # ------------------------------------------------------------------ corpus size (the issue asks for >= 60)
 def test_corpus_size():
     n = (len(MASK_ERRORS) + len(MASK_ACCEPTS) + len(CT_ERRORS) + 3 + 1 + len(FILE_ERRORS) + len(DICOM_ERRORS) + 2
-         + len(CONFIG_ERRORS) + 1)
-    assert n >= 60, n
+         + len(CONFIG_ERRORS) + 1 + 2)     # + 3 CTs repaired, the abdominal CT, 2 DICOM accepts, 1 + 2 run cases
+    assert n == 84, n
 
 
 # ------------------------------------------------------------------ stale outputs and temp files
