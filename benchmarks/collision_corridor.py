@@ -29,15 +29,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from room_pipeline.io.mesh import read_obj  # noqa: E402
+from room_pipeline.io.mesh import Mesh, read_obj  # noqa: E402
 from room_pipeline.robot.kinematics import ScopeGeometry  # noqa: E402
 from room_pipeline.robot.pybullet_sim import SimParams, simulate  # noqa: E402
 from room_pipeline.stages.simulate import open_entrance  # noqa: E402
 
 PYBULLET_ONE_SHAPE_OK = 131_708     # ../shared/DESIGN.md: passed; 200,914 failed
+#: --wall: the simulate stage's wall (collision_model.obj) or the finer render mesh (lung_model.obj), a larger
+#: surface of the same anatomy, to see the corridor where the whole mesh is large
+WALLS = {"collision": "collision_model", "render": "lung_model"}
 
 
-def inputs(run_dir: Path, sequence: str):
+def inputs(run_dir: Path, sequence: str, wall: str = "collision"):
     doc = json.loads((run_dir / sequence / "metadata" / "trajectory.json").read_text())
     fr = doc["frames"]
     traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),
@@ -45,7 +48,7 @@ def inputs(run_dir: Path, sequence: str):
                                  arclength=np.array([f["arclength"] for f in fr]))
     graph = json.loads((run_dir / "anatomy" / "centreline_graph.json").read_text())
     root_r = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
-    mesh, _ = open_entrance(read_obj(run_dir / "anatomy" / "collision_model.obj"), traj.poses[0, :3, 3],
+    mesh, _ = open_entrance(read_obj(run_dir / "anatomy" / f"{WALLS[wall]}.obj"), traj.poses[0, :3, 3],
                             traj.poses[0, :3, 2], root_r)
     return traj, mesh
 
@@ -64,26 +67,33 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("runs", nargs="+", help="RUN_DIR[:SEQUENCE] (patient folder of a pipeline run)")
     ap.add_argument("--name", default="collision_corridor")
+    ap.add_argument("--wall", choices=sorted(WALLS), default="collision")
     args = ap.parse_args()
     rows = []
     for spec in args.runs:
         run_dir, _, seq = spec.partition(":")
         run_dir, seq = Path(run_dir), seq or "sequence_000"
-        traj, mesh = inputs(run_dir, seq)
+        traj, mesh = inputs(run_dir, seq, args.wall)
         corr_p = SimParams()
         res_c, cpu_c, wall_c = timed(traj, mesh, corr_p)
         res_f, cpu_f, wall_f = timed(traj, mesh, SimParams(collision_corridor_mm=0.0))
+        # Bullet's own sensitivity to the triangle order: the whole mesh with its faces reversed (same geometry)
+        res_r = simulate(traj, Mesh(mesh.vertices, mesh.faces[::-1].copy()), SimParams(collision_corridor_mm=0.0),
+                         ScopeGeometry())
         dpos = np.linalg.norm(res_c.tip_poses[:, :3, 3] - res_f.tip_poses[:, :3, 3], axis=1) * 1e3
+        drev = np.linalg.norm(res_r.tip_poses[:, :3, 3] - res_f.tip_poses[:, :3, 3], axis=1) * 1e3
         dview = angle_deg(res_c.tip_poses[:, :3, 2], res_f.tip_poses[:, :3, 2])
         dur = float(res_c.report["duration_s"])
         mc, mf = res_c.report["mesh"], res_f.report["mesh"]
-        row = {"run": f"{run_dir.name}/{seq}", "frames": int(len(traj.timestamps)), "duration_s": dur,
+        row = {"run": f"{run_dir.name}/{seq}", "wall": WALLS[args.wall], "frames": int(len(traj.timestamps)), "duration_s": dur,
                "mesh_faces": int(mesh.n_faces), "fits_one_pybullet_shape": bool(mesh.n_faces <= PYBULLET_ONE_SHAPE_OK),
                "corridor_mm": corr_p.collision_corridor_mm, "corridor_faces": mc.get("corridor_faces"),
                "corridor_bodies": mc["bodies"], "corridor_margin_mm": mc.get("corridor_margin_mm"),
                "corridor_widened": res_c.report["corridor_widened"], "full_bodies": mf["bodies"],
                "tip_diff_mm": {"max": float(dpos.max()), "p95": float(np.percentile(dpos, 95)),
                                "median": float(np.median(dpos))},
+               "tip_diff_mm_whole_mesh_faces_reversed": {"max": float(drev.max()),
+                                                         "p95": float(np.percentile(drev, 95))},
                "view_diff_deg": {"max": float(dview.max()), "p95": float(np.percentile(dview, 95))},
                "cpu_s": {"corridor": cpu_c, "full": cpu_f}, "wall_s": {"corridor": wall_c, "full": wall_f},
                "realtime_factor_cpu": {"corridor": dur / cpu_c, "full": dur / cpu_f},
@@ -95,23 +105,26 @@ def main() -> None:
         print(json.dumps(row), flush=True)
     out = {"rows": rows, "config": SimParams().to_dict(), "python": platform.python_version(),
            "machine": platform.machine(), "cpu_count": os.cpu_count(),
-           "command": "benchmarks/collision_corridor.py " + " ".join(args.runs)}
+           "command": f"benchmarks/collision_corridor.py --wall {args.wall} --name {args.name} " + " ".join(args.runs)}
     res_dir = ROOT / "benchmarks" / "results"
     (res_dir / f"{args.name}.json").write_text(json.dumps(out, indent=2) + "\n")
     lines = [f"# Collision corridor vs whole mesh ({args.name})", "",
              "Default simulate config; `collision_corridor_mm` default vs 0 (whole mesh, cut into <= "
              f"{SimParams().max_body_faces} faces a body).  CPU = process_time of the simulate call "
-             "(user+sys); wall time is shared with other jobs (load average shown).", "",
+             "(user+sys); wall time is shared with other jobs (load average shown).  'faces reversed': the whole "
+             "mesh with the same triangles in reverse order against the whole mesh, i.e. Bullet's own sensitivity to "
+             "the triangle order (a floor for any change of the wall's triangle set).", "",
              "| run | frames | sim s | mesh faces | fits one shape | corridor faces / bodies | margin mm | "
-             "tip diff max / p95 mm | view diff max deg | CPU s corridor / full | x real time (CPU) corridor / full | "
+             "tip diff max / p95 mm | same, whole mesh with faces reversed | view diff max deg | CPU s corridor / full | x real time (CPU) corridor / full | "
              "speed-up (CPU) | wall s corridor / full | load avg |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
-            f"| {r['run']} | {r['frames']} | {r['duration_s']:.1f} | {r['mesh_faces']} | "
+            f"| {r['run']} ({r['wall']}) | {r['frames']} | {r['duration_s']:.1f} | {r['mesh_faces']} | "
             f"{'yes' if r['fits_one_pybullet_shape'] else 'no'} | {r['corridor_faces']} / {r['corridor_bodies']} | "
             f"{r['corridor_margin_mm']:.1f} | {r['tip_diff_mm']['max']:.4f} / {r['tip_diff_mm']['p95']:.4f} | "
-            f"{r['view_diff_deg']['max']:.4f} | {r['cpu_s']['corridor']:.2f} / {r['cpu_s']['full']:.2f} | "
+            f"{r['tip_diff_mm_whole_mesh_faces_reversed']['max']:.4f} / "
+            f"{r['tip_diff_mm_whole_mesh_faces_reversed']['p95']:.4f} | {r['view_diff_deg']['max']:.4f} | {r['cpu_s']['corridor']:.2f} / {r['cpu_s']['full']:.2f} | "
             f"{r['realtime_factor_cpu']['corridor']:.1f} / {r['realtime_factor_cpu']['full']:.1f} | "
             f"{r['speedup_cpu']:.2f} | {r['wall_s']['corridor']:.1f} / {r['wall_s']['full']:.1f} | "
             f"{r['load_average'][0]:.1f} |")

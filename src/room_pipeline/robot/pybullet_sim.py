@@ -1111,9 +1111,11 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
                 s_lo = float(trajectory.arclength[0]) - geometry.l - Lp - step
                 s_hi = float(trajectory.arclength[-1]) + step
                 samples = np.array([route.frame(s)[:3, 3] for s in np.arange(s_lo, s_hi + 0.5 * step, step)])
-                F = mesh.faces[route_corridor(mesh, samples, R)]
+                along = route_corridor(mesh, samples, R)
+                keep = np.sort(along)      # the mesh's own face order (Bullet's contact order follows it) ...
+                F = mesh.faces[keep]
                 corridor_tree = cKDTree(samples)
-                sim.set_wall(mesh.vertices, F, order=np.arange(len(F)))
+                sim.set_wall(mesh.vertices, F, order=np.searchsorted(keep, along))   # ... bodies cut along the route
                 faces_loaded = [len(F)]
             else:
                 sim.set_wall(mesh.vertices, mesh.faces)
