@@ -368,8 +368,7 @@ def main_physical(dirs: list[str]) -> None:
     done = {Path(q["patient_dir"]).name for q in phys["sequences"] if "skipped" not in q}
     old = [q for q in out.get("physical_reference", {}).get("sequences", [])
            if "skipped" not in q and Path(q["patient_dir"]).name not in done]
-    phys["sequences"] = sorted(old + [q for q in phys["sequences"] if "skipped" not in q or
-                                      Path(q["patient_dir"]).name not in {Path(o["patient_dir"]).name for o in old}],
+    phys["sequences"] = sorted(old + [q for q in phys["sequences"] if "skipped" not in q],
                                key=lambda q: Path(q["patient_dir"]).name)     # other patients' rows are kept
     jpath.write_text(json.dumps(out, indent=1))
     md = mpath.read_text().split("\n") if mpath.exists() else ["# Scope simulation benchmark (benchmarks/simulation.py)"]
