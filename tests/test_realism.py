@@ -16,7 +16,7 @@ from room_pipeline.render.camera import CameraIntrinsics
 from room_pipeline.render.exposure import ExposureParams, exposure_track, smooth_exposures
 from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
 from room_pipeline.render.scene import Film, Scene, TipLight, TissueMaterial
-from room_pipeline.render.texture import MucosaTexture, airway_coordinates, anatomy_factor, mucosa_albedo
+from room_pipeline.render.texture import MucosaTexture, airway_coordinates, anatomy_factor
 
 from .test_raycast import look, tube
 

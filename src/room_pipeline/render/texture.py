@@ -172,7 +172,6 @@ def gradient_noise(p: np.ndarray, key: np.uint64) -> np.ndarray:
     f = (p - i0).astype(np.float32)
     ii = i0.astype(np.int64) & 255
     w = f * f * f * (f * (f * np.float32(6.0) - np.float32(15.0)) + np.float32(10.0))
-    gidx = [_GRAD_OF]
     out = np.zeros(len(p), dtype=np.float32)
     X = [ii[:, 0], ii[:, 0] + 1]
     Y = [ii[:, 1], ii[:, 1] + 1]
@@ -183,7 +182,6 @@ def gradient_noise(p: np.ndarray, key: np.uint64) -> np.ndarray:
     wx = [1 - w[:, 0], w[:, 0]]
     wy = [1 - w[:, 1], w[:, 1]]
     wz = [1 - w[:, 2], w[:, 2]]
-    del gidx
     for dx in (0, 1):
         px = perm[X[dx]]
         for dy in (0, 1):
@@ -362,8 +360,7 @@ def airway_coordinates(points_world: np.ndarray, graph) -> np.ndarray:
     t = tans[idx]
     r = p - pts[idx]
     r -= np.einsum("ij,ij->i", r, t)[:, None] * t
-    post = np.array([0.0, -1.0, 0.0]) - t[:, 1:2] * -1.0 * t          # posterior minus its tangential part
-    post = np.array([0.0, -1.0, 0.0])[None, :] - (-t[:, 1])[:, None] * t
+    post = np.array([0.0, -1.0, 0.0])[None, :] - (-t[:, 1])[:, None] * t    # posterior minus its tangential part
     pn = np.linalg.norm(post, axis=1, keepdims=True)
     alt = np.array([0.0, 0.0, 1.0])[None, :] - t[:, 2:3] * t                  # branch along y: use superior
     post = np.where(pn > 1e-6, post / np.maximum(pn, 1e-12), alt / np.maximum(np.linalg.norm(alt, axis=1, keepdims=True), 1e-12))
