@@ -59,6 +59,7 @@ def write_sequence(root, n: int = 3, size: int = 48, blank: bool = False):
 def depth_cfg(tmp_path, **depth):
     base = OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "depth" / "default.yaml"))
     base["input"] = "rgb"                   # write_sequence renders clean frames only (the default reads rgb_noisy)
+    base["frame_stride"] = 1                # the tiny test sequences are scored frame by frame
     base.update(depth)
     return OmegaConf.create({"output_dir": str(tmp_path / "out"), "sequences": ["sequence_000"],
                              "phantoms": {"patient_000": {"seed": 0}},

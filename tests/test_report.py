@@ -336,14 +336,14 @@ def test_headless_chromium_loads_every_image_without_console_messages(tmp_path, 
     shot = tmp_path / "shot.png"
     base = [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=5000",
             "--enable-logging=stderr", "--v=0", "--hide-scrollbars", "--window-size=1280,2000"]
-    dom = subprocess.run(base + ["--dump-dom", f.as_uri()], capture_output=True, text=True, timeout=120)
+    dom = subprocess.run(base + ["--dump-dom", f.as_uri()], capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=120)
     assert dom.returncode == 0, dom.stderr[-2000:]
     n = len(parse(page).imgs)
     m = re.search(r'<body[^>]*data-images-loaded="([^"]*)"', dom.stdout)
     assert m and m.group(1) == f"{n}/{n}", (m and m.group(1), n)
     page_msgs = [ln for ln in dom.stderr.splitlines() if "CONSOLE" in ln or "Uncaught" in ln]
     assert not page_msgs, page_msgs
-    run = subprocess.run(base + [f"--screenshot={shot}", f.as_uri()], capture_output=True, text=True, timeout=120)
+    run = subprocess.run(base + [f"--screenshot={shot}", f.as_uri()], capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=120)
     assert run.returncode == 0 and shot.is_file(), run.stderr[-2000:]
     img = cv2.imread(str(shot))
     assert img.shape == (2000, 1280, 3)
