@@ -43,7 +43,7 @@ class Run:
 
     def require(self, stage: str) -> dict:
         if not self.done(stage):
-            err = [ln for ln in self.log.splitlines() if "error" in ln.lower() or "Error" in ln][-3:]
+            err = [ln for ln in self.log.splitlines() if ln.startswith("room: error") or "Error:" in ln][-3:]
             pytest.fail(f"{self.patient}: stage {stage} has no output (room run exit {self.rc}): "
                         + (" | ".join(err) or self.log[-1500:]), pytrace=False)
         return self.metrics(stage)
