@@ -323,21 +323,34 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         parser.error(f"unrecognized arguments: {' '.join(bad)}")
     args.overrides = list(getattr(args, "overrides", [])) + extra
+    import signal
+
+    from .io import outputs
+
+    signal.signal(signal.SIGINT, outputs.raise_interrupt)
     try:
         return int(args.func(args) or 0)
     except RoomError as exc:
-        print(f"room: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("room: interrupted", file=sys.stderr)
-        return 130
+        if not outputs.RECEIVED:
+            print(f"room: error: {exc}", file=sys.stderr)
+            return 2
+        exc_signal = outputs.RECEIVED[0]
     except BaseException as exc:
-        from .io.outputs import Terminated
-
-        if isinstance(exc, Terminated):
-            print("room: terminated", file=sys.stderr)
-            return 143
-        raise
+        # an interruption, or whatever an interruption turned into where it landed (a native import's
+        # ImportError, say): the stage's clean-up has run; report the signal, not a traceback
+        if isinstance(exc, outputs.Terminated):
+            exc_signal = signal.SIGTERM
+        elif isinstance(exc, KeyboardInterrupt):
+            exc_signal = signal.SIGINT
+        elif outputs.RECEIVED:
+            exc_signal = outputs.RECEIVED[0]
+        else:
+            raise
+    if exc_signal == signal.SIGTERM:
+        print("room: terminated", file=sys.stderr)
+        return 143
+    print("room: interrupted", file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":

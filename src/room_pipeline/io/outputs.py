@@ -71,8 +71,21 @@ def remove_outputs(outputs: Iterable[str | os.PathLike]) -> None:
                 out.unlink()
 
 
+#: the interrupting signals this process received (SIGINT through :func:`raise_interrupt`, SIGTERM here):
+#: an exception that unwinds after one (e.g. an ``ImportError`` a native module raises when Ctrl-C lands
+#: inside its initialisation) is an interruption, not a failure
+RECEIVED: list[int] = []
+
+
 def _raise_terminated(signum, frame) -> None:
+    RECEIVED.append(signum)
     raise Terminated(signum)
+
+
+def raise_interrupt(signum, frame) -> None:
+    """SIGINT handler: Python's own (raise ``KeyboardInterrupt``), remembering that the signal came."""
+    RECEIVED.append(signum)
+    raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
