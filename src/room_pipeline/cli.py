@@ -323,11 +323,14 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         parser.error(f"unrecognized arguments: {' '.join(bad)}")
     args.overrides = list(getattr(args, "overrides", [])) + extra
+    import contextlib
     import signal
 
     from .io import outputs
 
-    signal.signal(signal.SIGINT, outputs.raise_interrupt)
+    outputs.RECEIVED.clear()                       # signals of an earlier in-process call do not count
+    with contextlib.suppress(ValueError):          # not the main thread: leave SIGINT to Python
+        signal.signal(signal.SIGINT, outputs.raise_interrupt)
     try:
         return int(args.func(args) or 0)
     except RoomError as exc:
