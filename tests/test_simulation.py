@@ -277,11 +277,14 @@ def test_controller_tracks_phantom_path(phantom):
 # --------------------------------------------------------------------------- friction under insertion (issue #17)
 
 
-@pytest.mark.parametrize("dt", [1e-3, 5e-3])
+@pytest.mark.parametrize("dt", [1e-3, 2.5e-3])
 def test_insertion_by_velocity_recovers_dynamic_friction(dt):
     """Scope pushed along a flat wall at 0.5 N normal load, inserted at 5 mm/s: the measured friction
     coefficient is mu_d = 0.25 within 10 % and the switch reads sliding; teleporting the base (the old
-    insertion) leaves the links at 0 mm/s and the friction far below mu_d."""
+    insertion) leaves the links at 0 mm/s and the friction far below mu_d.  (At the default 5 ms step and
+    mass x10 this press, 10x the default sequences' largest contact force, chatters: normal force ~13 N, deeper
+    than simulate's instability bound, so a sequence pressing that hard is redone at 2.5 ms, checked here;
+    benchmarks/results/simulation_converged.md.)"""
     prm = SimParams(time_step_s=dt)
     moved = friction_probe(prm, G, 0.5, speed_mm_s=5.0)
     assert moved["normal_n"] == pytest.approx(0.5, rel=0.1)

@@ -18,6 +18,7 @@ and constant before the first and after the last knot.
 """
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -44,12 +45,14 @@ class CommandSignal:
     def __init__(self) -> None:
         self._t: list[float] = []
         self._q: list[np.ndarray] = []
+        self._arrays: tuple[np.ndarray, np.ndarray] | None = None
 
     def add(self, t: float, q) -> None:
         if self._t and t <= self._t[-1]:
             raise ValueError(f"command knots must increase in time: {t} after {self._t[-1]}")
         self._t.append(float(t))
         self._q.append(np.asarray(q, dtype=float).reshape(3).copy())
+        self._arrays = None
 
     def __call__(self, t: float) -> np.ndarray:
         if not self._t:
@@ -59,9 +62,23 @@ class CommandSignal:
             return self._q[0].copy()
         if t >= ts[-1]:
             return self._q[-1].copy()
-        i = int(np.searchsorted(ts, t, side="right")) - 1
+        i = bisect.bisect_right(ts, t) - 1
         w = (t - ts[i]) / (ts[i + 1] - ts[i])
         return (1.0 - w) * self._q[i] + w * self._q[i + 1]
+
+    def batch(self, t) -> np.ndarray:
+        """``q_cmd`` at every time of ``t`` (shape (n,)): (n, 3), the same formula as a call per time."""
+        if not self._t:
+            raise ValueError("no command yet")
+        if self._arrays is None:
+            self._arrays = (np.asarray(self._t), np.asarray(self._q))
+        T, Q = self._arrays
+        t = np.asarray(t, dtype=float).reshape(-1)
+        if len(T) == 1:
+            return np.repeat(Q[:1], len(t), axis=0)
+        i = np.clip(np.searchsorted(T, t, side="right") - 1, 0, len(T) - 2)
+        w = np.clip((t - T[i]) / (T[i + 1] - T[i]), 0.0, 1.0)[:, None]
+        return (1.0 - w) * Q[i] + w * Q[i + 1]
 
 
 class Actuator:
@@ -77,3 +94,8 @@ class Actuator:
 
     def __call__(self, t: float) -> np.ndarray:
         return apply_gain(self.signal(t - self.delay_s), self.q1_max, self.gain_q1, self.gain_q2)
+
+    def batch(self, t) -> np.ndarray:
+        """``q_act`` at every time of ``t`` (shape (n,)): (n, 3)."""
+        return apply_gain(self.signal.batch(np.asarray(t, dtype=float) - self.delay_s), self.q1_max,
+                          self.gain_q1, self.gain_q2)

@@ -285,7 +285,10 @@ def jacobian(q, s=None, *, geometry: ScopeGeometry = DEFAULT_GEOMETRY) -> np.nda
 
 
 def _angle_between(a: np.ndarray, b: np.ndarray) -> float:
-    return float(math.atan2(np.linalg.norm(np.cross(a, b)), float(np.dot(a, b))))
+    ax, ay, az = (float(v) for v in a)
+    bx, by, bz = (float(v) for v in b)
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
 
 
 def _wrap_near(angle: float, ref: float) -> float:
@@ -436,10 +439,33 @@ def _lm(q: np.ndarray, p: np.ndarray, t: np.ndarray, w: float, s: float, geometr
     """Levenberg-Marquardt on |p(q) - p*|^2 + w^2 |t(q) - t*|^2 with |q1| <= q1_max (active set)."""
     scale = np.array([1.0, 1.0, 1.0, w, w, w])
     q1_max = geometry.q1_max
+    dk = -1.0 / (2.0 * geometry.gamma * geometry.l)
+    px, py, pz, tx, ty, tz = (float(v) for v in (*p, *t))
 
+    # fk and jacobian of one q in plain floats (the same closed forms; the LM's inner loop calls them
+    # ~10 times per solve, and the numpy-array versions cost ~20x more per call)
     def residual(qq):
-        T = fk(qq, s, geometry=geometry)
-        return np.concatenate([T[:3, 3] - p, w * (T[:3, 2] - t)])
+        theta = dk * float(qq[0]) * s
+        h = _sinc_scalar(0.5 * theta)
+        lateral = s * theta * 0.5 * h * h
+        c2, s2 = math.cos(qq[1]), math.sin(qq[1])
+        ct, st = math.cos(theta), math.sin(theta)
+        return np.array([s2 * lateral - px, -c2 * lateral - py, float(qq[2]) + s * _sinc_scalar(theta) - pz,
+                         w * (s2 * st - tx), w * (-c2 * st - ty), w * (ct - tz)])
+
+    def jac(qq):
+        theta = dk * float(qq[0]) * s
+        sinc = _sinc_scalar(theta)
+        h = _sinc_scalar(0.5 * theta)
+        cosc = 0.5 * h * h
+        lateral = s * theta * cosc
+        d_lateral = s * s * (sinc - cosc) * dk
+        d_axial = -s * s * float(_dsinc(theta)) * dk
+        c2, s2 = math.cos(qq[1]), math.sin(qq[1])
+        ct, st = math.cos(theta), math.sin(theta)
+        return np.array([[s2 * d_lateral, c2 * lateral, 0.0], [-c2 * d_lateral, s2 * lateral, 0.0],
+                         [d_axial, 0.0, 1.0], [s * dk * s2 * ct, c2 * st, 0.0], [-s * dk * c2 * ct, s2 * st, 0.0],
+                         [-s * dk * st, 0.0, 0.0]])
 
     q = clamp_q(q, geometry)
     r = residual(q)
@@ -447,7 +473,7 @@ def _lm(q: np.ndarray, p: np.ndarray, t: np.ndarray, w: float, s: float, geometr
     lam = 1e-3
     it = 0
     while it < max_iter and cost >= 1e-32:
-        J = jacobian(q, s, geometry=geometry) * scale[:, None]
+        J = jac(q) * scale[:, None]
         g = J.T @ r
         H = J.T @ J
         free = np.ones(3, dtype=bool)
@@ -464,7 +490,8 @@ def _lm(q: np.ndarray, p: np.ndarray, t: np.ndarray, w: float, s: float, geometr
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
-            q_new = clamp_q(q + step, geometry)
+            q_new = q + step
+            q_new[0] = min(max(q_new[0], -q1_max), q1_max)
             r_new = residual(q_new)
             cost_new = float(r_new @ r_new)
             if cost_new < cost:

@@ -22,14 +22,19 @@ Scope model
 
 Units and stability
     SI (metres, kg, s).  With the scope's real mass (0.03 kg/m: 0.15 g per 5 mm link) the stable
-    PD keeps free space exact but leaves the chain limp in contact (the predicted acceleration of
-    a link pressed on the wall is wrong by orders of magnitude): it buckles and tunnels the wall
-    at a 5 ms step.  The motion is quasi-static (mm/s; time constant damping/stiffness = 25 ms),
-    so the mass is **scaled** (``mass_scale``, default x100: the standard trick for quasi-static
-    rod simulation) and mass-proportional damping ``alpha M`` (``mass_damping_per_s``) keeps the
-    scaled chain near critically damped; neither changes an equilibrium (what the output
-    records); both vanish as ``mass_scale -> 1``.  benchmarks/results/simulation.md measures
-    stability, tracking and free-space settling against mass_scale.  Gravity is off by default
+    PD keeps free space exact but the chain in contact needs tiny steps: the physical-mass run
+    converges only near 0.5 ms (1 ms differs from 0.5 ms by p95 0.9 mm at the recorded 10 Hz
+    states) and tunnels the wall at 5 ms.  The motion is quasi-static (mm/s; joint time constant
+    damping/stiffness = 25 ms), so the mass is **scaled** (``mass_scale``, default x10) at a 5 ms
+    step: its 10 Hz tip states match the converged physical-mass run within p95 0.03 mm / 0.5 deg
+    (benchmarks/results/simulation_converged.md; x30 or x100 at 10 ms lag it by 0.4-1 mm).
+    Optional mass-proportional damping ``alpha M`` (``mass_damping_per_s``, default 0) vanishes
+    as ``mass_scale -> 1`` (with x100 it added ~0.3 s of lag).  The joint-space mass matrix of
+    the stable PD is refreshed every ``mass_matrix_every`` steps (default 4, measured there).
+    A press ten times harder than the default sequences' largest contact (0.5 N spread over the
+    links, :func:`friction_probe`; the sequences peak below 0.05 N) chatters at x10 / 5 ms (normal
+    force ~13 N, i.e. ~3 mm deep): past ``unstable_penetration_mm`` :func:`simulate` redoes the run
+    at half the step, where that press is stable (mu_d recovered, tests/test_simulation.py).  Gravity is off by default
     (``gravity_m_s2: 0``: the scope's weight, ~0.3 g per bending segment, is carried by the
     handle and the airway; the kinematic model has none).
 
@@ -91,6 +96,7 @@ Errors
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 from typing import Any, Mapping
@@ -118,15 +124,15 @@ class SimParams:
     """Knobs of the simulation; field names are the keys of ``conf/simulate/default.yaml``."""
 
     seed: int = 0                           # actuation delay RNG seed
-    time_step_s: float = 1e-2               # physics step (largest stable in contact: benchmarks/simulation.py)
+    time_step_s: float = 5e-3               # physics step (accurate against the converged physical-mass run)
     unstable_penetration_mm: float = 1.0    # a run deeper than this (or non-finite) is redone at half the step
     max_step_halvings: int = 2              # ... at most this many times
     solver_iterations: int = 10             # Bullet constraint-solver iterations per step
     n_links: int = 10                       # capsules in the bending segment
     scope_diameter_mm: float = 5.0          # outer diameter (Ambu aScope 4 Regular: 5.0 mm)
     linear_density_kg_m: float = 0.03       # scope mass per length
-    mass_scale: float = 100.0               # simulated mass = physical x this (1 = physical)
-    mass_damping_per_s: float = 10.0        # implicit: extra joint damping alpha * M (mass-proportional), 1/s
+    mass_scale: float = 10.0                # simulated mass = physical x this (1 = physical)
+    mass_damping_per_s: float = 0.0         # implicit: extra joint damping alpha * M (mass-proportional), 1/s
     joint_integration: str = "implicit"     # implicit (stable PD) | explicit spring-damper torques
     inertia_factor: float = 0.0             # explicit: link rotational inertia >= factor * joint_damping * time_step_s
     joint_stiffness: float = 2.0e-2         # N m/rad, bending-segment joints
@@ -155,7 +161,7 @@ class SimParams:
     settle_time_s: float = 0.3              # settling before the first frame
     ik_direction_weight_mm: float | None = None  # weight of the view direction in IK (null: l)
     controller_iterations: int = 2
-    mass_matrix_every: int = 1              # implicit: refresh the joint-space mass matrix every n steps
+    mass_matrix_every: int = 4              # implicit: refresh the joint-space mass matrix every n steps
     max_rate_q1_mm_s: float = 16.0          # actuator rate limits of the command: tendon differential, mm/s
     max_rate_q2_deg_s: float = 90.0         # axial rotation, deg/s
     max_rate_q3_mm_s: float = 50.0          # insertion, mm/s
@@ -406,6 +412,47 @@ class Route:
         T[:3, 3] = P
         return T
 
+    def frames(self, s, roll=None) -> np.ndarray:
+        """:meth:`frame` at every arclength of ``s`` (shape (n,)), each rolled about its z by ``roll``
+        (rad, (n,), optional): (n, 4, 4).  One vectorised pass (the physics loop's per-step base poses)."""
+        s = np.asarray(s, float).reshape(-1)
+        S = self.s
+        i = np.clip(np.searchsorted(S, s, side="right") - 1, 0, len(S) - 2)
+        w = ((s - S[i]) / (S[i + 1] - S[i]))[:, None]
+        P = (1 - w) * self.P[i] + w * self.P[i + 1]
+        t = (1 - w) * self.t[i] + w * self.t[i + 1]
+        x = (1 - w) * self.x[i] + w * self.x[i + 1]
+        for mask, k, s0 in ((s <= S[0], 0, S[0]), (s >= S[-1], -1, S[-1])):
+            if mask.any():
+                P[mask] = self.P[k] + (s[mask] - s0)[:, None] * self.t[k]
+                t[mask] = self.t[k]
+                x[mask] = self.x[k]
+        t = t / np.sqrt(np.einsum("ij,ij->i", t, t))[:, None]
+        x = x - np.einsum("ij,ij->i", x, t)[:, None] * t
+        x = x / np.sqrt(np.einsum("ij,ij->i", x, x))[:, None]
+        y = np.cross(t, x)
+        if roll is not None:
+            c, sn = np.cos(roll)[:, None], np.sin(roll)[:, None]
+            x, y = c * x + sn * y, c * y - sn * x
+        T = np.zeros((len(s), 4, 4))
+        T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x, y, t, P
+        T[:, 3, 3] = 1.0
+        return T
+
+
+def log_so3_batch(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (n, 3) of the rotation matrices ``R`` (n, 3, 3) (:func:`_log_so3`, vectorised;
+    the angle from atan2, accurate at small angles; a half turn falls back to the scalar form)."""
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    sn = 0.5 * np.sqrt(np.einsum("ij,ij->i", v, v))
+    c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
+    a = np.arctan2(sn, c)
+    f = np.where(a < 1e-6, 0.5, a / (2.0 * np.where(a < 1e-6, 1.0, sn)))
+    out = f[:, None] * v
+    for k in np.flatnonzero(math.pi - a < 1e-6):
+        out[k] = _log_so3(R[k])
+    return out
+
 
 def crop_faces(mesh: Mesh, points: np.ndarray, radius: float, tree: cKDTree | None = None) -> np.ndarray:
     """Sorted indices of the faces whose centroid is within ``radius`` of any of ``points``."""
@@ -541,10 +588,16 @@ class ScopeSim:
         self._mu = np.full(len(self.capsules), -1.0)
         p.setJointMotorControlArray(self.body, self.joints, p.VELOCITY_CONTROL, forces=[0.0] * n, physicsClientId=c)
         self.targets = np.zeros(n)
+        self._q1_targets = None
+        self._bend_pattern = np.zeros(n)          # joint targets per unit vertex angle: half at the base vertex
+        self._bend_pattern[2 * self.n_shaft] = 0.5
+        self._bend_pattern[2 * self.n_shaft + 2::2] = 1.0
+        self._phi_per_q1 = float(kappa(1.0, self.geometry)) * self.ds     # vertex angle per unit q1 (kappa is linear)
         self.base_pose = np.eye(4)
         self.implicit = prm.joint_integration == "implicit"
         self.dt = prm.time_step_s
-        self._Minv = None
+        self._pd_gain = None
+        self._D_joint = np.diag(self.d)
         self._since_mass = 0
 
     def close(self) -> None:
@@ -574,9 +627,15 @@ class ScopeSim:
         self.walls = []
         self.wall = -1
         self.wall_shape = -1   # (Bullet refuses to remove a shape still referenced; it is freed with the world)
+        self.wall_faces = 0
+        self.add_wall(vertices, faces, order)
+
+    def add_wall(self, vertices: np.ndarray, faces: np.ndarray, order: np.ndarray | None = None) -> None:
+        """Add static wall bodies (as :meth:`set_wall`) after those already loaded."""
+        c = self.cid
         faces = np.asarray(faces, np.int64).reshape(-1, 3)
         vertices = np.asarray(vertices, float)
-        self.wall_faces = int(len(faces))
+        self.wall_faces += int(len(faces))
         if len(faces) == 0:
             return
         for part in split_faces(vertices, faces, self.max_body_faces, order):
@@ -633,17 +692,18 @@ class ScopeSim:
             w = _log_so3(pose[:3, :3] @ prev_pose[:3, :3].T) / h
             p.resetBaseVelocity(self.body, v.tolist(), w.tolist(), physicsClientId=c)
 
+    def set_base_velocity(self, pose: np.ndarray, v, w) -> None:
+        """:meth:`set_base` with ``reset=False`` and the velocity already known (``v``, ``w``: lists, world
+        frame): the base is where the last step took it; ``pose`` is where this step takes it."""
+        self.base_pose = pose
+        p.resetBaseVelocity(self.body, v, w, physicsClientId=self.cid)
+
     def set_bend(self, q1: float) -> None:
         """Joint targets of the bending segment for tendon differential ``q1`` (in its rolled base)."""
-        if q1 == getattr(self, "_q1_targets", None):
+        if q1 == self._q1_targets:
             return
         self._q1_targets = q1
-        phi = float(kappa(q1, self.geometry)) * self.ds
-        t = np.zeros(len(self.joints))
-        first = 2 * self.n_shaft
-        t[first] = 0.5 * phi
-        t[first + 2::2] = phi
-        self.targets = t
+        self.targets = (self._phi_per_q1 * q1) * self._bend_pattern
 
     def reset_joints(self) -> None:
         """Joints at their targets, at rest."""
@@ -656,25 +716,29 @@ class ScopeSim:
 
     def step(self, n: int = 1) -> None:
         c, body, joints = self.cid, self.body, self.joints
+        nj = len(joints)
         for i in range(n):
             js = p.getJointStates(body, joints, physicsClientId=c)
-            th = np.fromiter((j[0] for j in js), float, len(joints))
-            om = np.fromiter((j[1] for j in js), float, len(joints))
+            th = np.array([j[0] for j in js])
+            om = np.array([j[1] for j in js])
             if self.implicit:
                 # stable PD (Tan, Liu & Turk 2011): spring at theta + dt*omega, damper at the predicted
-                # velocity omega + dt*acc, acc from the joint-space mass matrix (bias and contact ignored).
-                # (M + dt D)^-1 is refreshed every `mass_matrix_every` steps: a LAPACK solve per step cost
-                # more than the physics step itself (OpenBLAS thread start-up on tiny matrices).
+                # velocity omega + dt*acc, acc = (M + dt D)^-1 (e - D omega) from the joint-space mass
+                # matrix (bias and contact ignored), i.e. tau = e - D (omega + dt acc) = M (M + dt D)^-1 (e - D omega):
+                # one cached matrix, refreshed every `mass_matrix_every` steps (a LAPACK solve per step cost
+                # more than the physics step itself: OpenBLAS thread start-up on tiny matrices).
                 # Mass-proportional damping alpha*M (mass_damping_per_s) keeps the mass-scaled chain overdamped.
-                if self._Minv is None or self._since_mass >= self.params.mass_matrix_every:
-                    M = np.array(p.calculateMassMatrix(body, th.tolist(), physicsClientId=c))
-                    self._D = np.diag(self.d) + self.params.mass_damping_per_s * M
-                    self._Minv = np.linalg.inv(M + self.dt * self._D)
+                if self._pd_gain is None or self._since_mass >= self.params.mass_matrix_every:
+                    M = np.fromiter(itertools.chain.from_iterable(
+                        p.calculateMassMatrix(body, th.tolist(), physicsClientId=c)), float, nj * nj).reshape(nj, nj)
+                    alpha = self.params.mass_damping_per_s
+                    D = self._D_joint + alpha * M if alpha else self._D_joint
+                    self._pd_gain = M @ np.linalg.inv(M + self.dt * D)
+                    self._D = D if alpha else None
                     self._since_mass = 0
                 self._since_mass += 1
-                e = self.k * (self.targets - th - self.dt * om)
-                acc = self._Minv @ (e - self._D @ om)
-                tau = e - self._D @ (om + self.dt * acc)
+                r = self.k * (self.targets - th - self.dt * om) - (self.d * om if self._D is None else self._D @ om)
+                tau = self._pd_gain @ r
             else:
                 tau = self.k * (self.targets - th) - self.d * om
             p.setJointMotorControlArray(body, joints, p.TORQUE_CONTROL, forces=tau.tolist(), physicsClientId=c)
@@ -1156,11 +1220,28 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         signal.add(ts[k], qk)
         n = max(1, int(round((ts[k] - ts[k - 1]) / dt)))
         h = (ts[k] - ts[k - 1]) / n
-        for j in range(n):
-            t_now = ts[k - 1] + (j + 1) * h
-            q_act_now = act(t_now)
-            apply(q_act_now, h, reset=(j == 0))
+        if params.insertion_by_velocity:
+            # the frame's n base poses and velocities in one vectorised pass (the same formulas as apply():
+            # each step's base velocity takes it from its pose one step earlier to its pose now)
+            Q = act.batch(ts[k - 1] + np.arange(1, n + 1) * h)
+            B = route.frames(Q[:, 2] - Lp, Q[:, 1])
+            prev = np.concatenate([sim.base_pose[None], B[:-1]])
+            V = ((B[:, :3, 3] - prev[:, :3, 3]) / h).tolist()
+            W = (log_so3_batch(B[:, :3, :3] @ prev[:, :3, :3].transpose(0, 2, 1)) / h).tolist()
+            sim.set_base(B[0], prev[0], h, reset=True)
+            sim.set_bend(float(Q[0, 0]))
             sim.step(1)
+            for j in range(1, n):
+                sim.set_base_velocity(B[j], V[j], W[j])
+                sim.set_bend(float(Q[j, 0]))
+                sim.step(1)
+            q_act_now = Q[-1]
+        else:
+            for j in range(n):
+                t_now = ts[k - 1] + (j + 1) * h
+                q_act_now = act(t_now)
+                apply(q_act_now, h, reset=(j == 0))
+                sim.step(1)
         steps += n
         record(k, ts[k])
     wall = time.perf_counter() - t_wall0
