@@ -328,3 +328,39 @@ def test_camera_roll_and_straight_stretch_change():
     assert math.degrees(straight_roll_change(roll, q1, G.q1_max)) == pytest.approx(2.0)
     assert straight_roll_change(roll, np.full(7, G.q1_max), G.q1_max) == 0.0
     assert straight_roll_change(np.zeros(0), np.zeros(0), G.q1_max) == 0.0
+
+
+# --------------------------------------------------------------------------- vectorised helpers of the physics loop
+
+
+def test_vectorised_route_frames_signal_and_log_match_the_scalar_forms():
+    from room_pipeline.robot.pybullet_sim import Route, _log_so3, _rx, _rz, log_so3_batch
+
+    rng = np.random.default_rng(4)
+    s = np.cumsum(rng.uniform(1e-3, 3e-3, 30))
+    P = np.column_stack([np.sin(20 * s), np.cos(15 * s), s]) * 0.01
+    R = np.stack([_rz(a) @ _rx(0.3 * a) for a in s * 40])
+    route = Route(P, s, R)
+    q = np.concatenate([[s[0] - 0.02, s[0]], rng.uniform(s[0], s[-1], 40), [s[-1], s[-1] + 0.03]])
+    roll = rng.uniform(-4, 4, len(q))
+    F = route.frames(q, roll)
+    for i in range(len(q)):
+        T = route.frame(q[i])
+        T[:3, :3] = T[:3, :3] @ _rz(roll[i])
+        np.testing.assert_allclose(F[i], T, atol=1e-12)
+    np.testing.assert_allclose(route.frames(q)[:, :3, 3], [route.frame(x)[:3, 3] for x in q], atol=1e-12)
+    # rotation vectors: zero, tiny, ordinary and half turns
+    rots = [np.eye(3), _rx(1e-9), _rz(1e-4) @ _rx(2e-4), _rx(0.7) @ _rz(-1.1), _rz(math.pi), _rx(math.pi - 1e-8)]
+    got = log_so3_batch(np.stack(rots))
+    for g, Rm in zip(got, rots):
+        np.testing.assert_allclose(g, _log_so3(Rm), atol=1e-7)
+    # the command signal: before, between and after its knots, and with one knot
+    sig = CommandSignal()
+    sig.add(0.0, [0.001, 0.2, 0.01])
+    np.testing.assert_array_equal(sig.batch([-1.0, 0.0, 3.0]), np.repeat([[0.001, 0.2, 0.01]], 3, axis=0))
+    sig.add(0.1, [0.002, -0.2, 0.02])
+    sig.add(0.3, [0.0, 0.5, 0.05])
+    t = np.array([-0.1, 0.0, 0.05, 0.1, 0.17, 0.3, 0.9])
+    np.testing.assert_allclose(sig.batch(t), [sig(x) for x in t], rtol=0, atol=1e-15)
+    act = Actuator(sig, 0.04, G.q1_max)
+    np.testing.assert_allclose(act.batch(t), [act(x) for x in t], rtol=0, atol=1e-15)
