@@ -26,7 +26,7 @@ Units and stability
     converges only near 0.5 ms (1 ms differs from 0.5 ms by p95 0.9 mm at the recorded 10 Hz
     states) and tunnels the wall at 5 ms.  The motion is quasi-static (mm/s; joint time constant
     damping/stiffness = 25 ms), so the mass is **scaled** (``mass_scale``, default x10) at a 5 ms
-    step: its 10 Hz tip states match the converged physical-mass run within p95 0.03 mm / 0.63 deg
+    step: its 10 Hz tip states match the converged physical-mass run within p95 0.03 mm / 0.6 deg
     (benchmarks/results/simulation_converged.md; x30 or x100 at 10 ms are p95 0.3-1 mm off).
     Optional mass-proportional damping ``alpha M`` (``mass_damping_per_s``, default 0) vanishes
     as ``mass_scale -> 1`` (with x100 it added ~0.3 s of lag).  The joint-space mass matrix of
