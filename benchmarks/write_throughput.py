@@ -19,20 +19,28 @@ path.  Camera: the render config's default (600x600, 85 deg).
    mean bytes/frame over the sample x 448 (extrapolated from the sample, not a
    full render; say so when quoting it).
 3. Throughput, side by side in one run over ``--frames`` consecutive frames
-   of the sequence: the bare Open3D ray cast of every pixel (``RaycastingScene.
-   cast_rays``), then the render stage's own per-frame path (``_frame_worker``
-   + ``_render_block``: render, encode, write) for the geometric modalities
-   (depth, relative depth, normals, flow, segmentation) with the default
-   storage, with the writer threads off, with the previous storage (float32
-   EXR, .flo, no rounding), and every default modality.  Wall frames/s, CPU
-   ms/frame of the process, load average before/after.
+   of the sequence.  The headline pair, interleaved ``--rounds`` times so both
+   see the same share of the other users' load: the bare Open3D ray cast
+   (``RaycastingScene.create_rays_pinhole`` + ``cast_rays`` of every pixel on
+   the renderer's own BVH, hit distances fetched: what a user of Open3D alone
+   gets) and the render stage's own per-frame path (``_frame_worker`` +
+   ``_render_block``: render, encode, write, with the writer threads) for the
+   geometric modalities (depth, relative depth, normals, flow + validity,
+   segmentation) with the default storage.  Then, once each: the renderer's
+   own cast alone, the geometric path with the writer threads off, with the
+   storage of two rounds ago (float32 EXR, .flo, ZIP, PNG level 3, no
+   threads), and every default modality.  Wall frames/s, CPU ms/frame of the
+   process (all its threads), load average before/after.
+   ``--quick``: only the headline pair (``write_throughput_headline.{md,json}``).
 4. Memory: resident set size every 25 frames over ``--memory-frames`` frames
    (the sequence's poses repeated when it is shorter) through the same path.
 
 Wall times on the shared 2-core machine include the other users' load: the
 load average and the CPU time are printed next to them.
 
-    python benchmarks/write_throughput.py [--data data/output] [--sample 12] [--frames 80] [--memory-frames 500]
+    python benchmarks/write_throughput.py [--data data/output] [--sample 12] [--frames 80] [--rounds 2]
+                                          [--memory-frames 500]
+    python benchmarks/write_throughput.py --quick [--data data/output] [--frames 60] [--rounds 2]
 """
 from __future__ import annotations
 
@@ -63,7 +71,8 @@ SEQ_FRAMES = 448
 GEOMETRIC = ("depth", "relative_depth", "normals", "flow", "segmentation")
 DEFAULT_MODS = ("rgb", "depth", "relative_depth", "normals", "flow", "segmentation")
 GEOMETRIC_DEFAULT = "geometric modalities rendered + written, default storage"
-OLD_STORAGE = {"depth_quantum_m": 0.0, "normals_dtype": "float32", "flow_format": "flo", "write_threads": 0}
+OLD_STORAGE = {"depth_quantum_m": 0.0, "depth_compression": "zip", "normals_dtype": "float32",
+               "normals_compression": "zip", "flow_format": "flo", "png_level": 3, "write_threads": 0}
 
 
 def cpu_s() -> float:
@@ -145,9 +154,9 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     depth_err = lambda f, a: 1e3 * float(np.abs(a.astype(np.float64) - f["depth"].astype(np.float64))[f["hit"]].max())  # noqa: E731,E501
     for comp in ("none", "zip", "piz", "zips"):
         exr("depth", "depth", f"float32 {comp}", raw_depth, False, comp, depth_err, ("Y",))
-    for comp in ("zip", "piz"):
+    for comp in ("zip", "zip:1", "piz", "pxr24"):
         exr("depth", "depth", f"float32 rounded 2^-17 m, {comp}", rounded(q17), False, comp, depth_err, ("Y",),
-            default=comp == "zip")
+            default=comp == "pxr24")
     exr("depth", "depth", "float32 rounded 2^-16 m, zip", rounded(q16), False, "zip", depth_err, ("Y",))
     exr("depth", "depth", "float32 pxr24 (lossy 24-bit)", raw_depth, False, "pxr24", depth_err, ("Y",))
     exr("depth", "depth", "half zip", raw_depth, True, "zip", depth_err, ("Y",))
@@ -155,8 +164,8 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     nrm = lambda f: f["normals"]  # noqa: E731
     nrm_err = lambda f, a: float(np.abs(a - f["normals"]).max())  # noqa: E731
     exr("normals", "normals", "float32 zip (before)", nrm, False, "zip", nrm_err)
-    for comp in ("zip", "piz", "zips"):
-        exr("normals", "normals", f"half {comp}", nrm, True, comp, nrm_err, default=comp == "zip")
+    for comp in ("zip", "zip:1", "piz", "zips", "pxr24"):
+        exr("normals", "normals", f"half {comp}", nrm, True, comp, nrm_err, default=comp == "pxr24")
     exr("normals", "normals", "half dwaa (lossy)", nrm, True, "dwaa", nrm_err)
 
     flw = lambda f: f["flow"]  # noqa: E731
@@ -164,22 +173,29 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     cands.append(("flow", ".flo float32 (before)", False, lambda f, p: write_flo(p, f["flow"]), read_flo, flow_err,
                   ".flo"))
     exr("flow", "flow", "float32 zip", flw, False, "zip", flow_err, ("R", "G"))
-    for comp in ("zip", "piz", "zips"):
-        exr("flow", "flow", f"half {comp}", flw, True, comp, flow_err, ("R", "G"), default=comp == "zip")
+    for comp in ("zip", "zip:1", "piz", "zips", "pxr24"):
+        exr("flow", "flow", f"half {comp}", flw, True, comp, flow_err, ("R", "G"), default=comp == "pxr24")
+    # the noise stage writes rgb_noisy with write_png8's default level (io.images.PNG_COMPRESSION)
+    from room_pipeline.io.images import PNG_COMPRESSION
+
+    png_default = StorageParams().png_level
     for lvl in (1, 3, 6, 9):
-        cands.append(("rgb", f"png level {lvl}", lvl == 3, lambda f, p, l=lvl: write_png8(p, f["rgb"], l), read_png,
-                      lambda f, a: float(np.abs(a.astype(int) - f["rgb"]).max()), ".png"))
-        cands.append(("rgb_noisy", f"png level {lvl}", lvl == 3, lambda f, p, l=lvl: write_png8(p, f["rgb_noisy"], l),
+        cands.append(("rgb", f"png level {lvl}", lvl == png_default, lambda f, p, l=lvl: write_png8(p, f["rgb"], l),
+                      read_png, lambda f, a: float(np.abs(a.astype(int) - f["rgb"]).max()), ".png"))
+        cands.append(("rgb_noisy", f"png level {lvl}", lvl == PNG_COMPRESSION,
+                      lambda f, p, l=lvl: write_png8(p, f["rgb_noisy"], l),
                       read_png, lambda f, a: float(np.abs(a.astype(int) - f["rgb_noisy"]).max()), ".png"))
-        cands.append(("relative_depth", f"png16 level {lvl}", lvl == 3,
+        cands.append(("relative_depth", f"png16 level {lvl}", lvl == png_default,
                       lambda f, p, l=lvl: write_png16(p, f["relative_depth"], l), read_png,
                       lambda f, a: float(np.abs(a.astype(int) - f["relative_depth"]).max()), ".png"))
     seg = lambda f: (f["segmentation"] + 1).astype(np.uint16)  # noqa: E731
-    cands.append(("segmentation", "png16 level 3", True, lambda f, p: write_png16(p, seg(f), 3), read_png,
-                  lambda f, a: float(np.abs(a.astype(int) - seg(f)).max()), ".png"))
     vld = lambda f: f["flow_valid"].astype(np.uint8) * 255  # noqa: E731
-    cands.append(("flow_valid", "png level 3", True, lambda f, p: write_png8(p, vld(f), 3), read_png,
-                  lambda f, a: float(np.abs(a.astype(int) - vld(f)).max()), ".png"))
+    for rle in (False, True):
+        tag = f"level {png_default}" + (", RLE strategy" if rle else "")
+        cands.append(("segmentation", f"png16 {tag}", rle, lambda f, p, r=rle: write_png16(p, seg(f), png_default, r),
+                      read_png, lambda f, a: float(np.abs(a.astype(int) - seg(f)).max()), ".png"))
+        cands.append(("flow_valid", f"png {tag}", rle, lambda f, p, r=rle: write_png8(p, vld(f), png_default, r),
+                      read_png, lambda f, a: float(np.abs(a.astype(int) - vld(f)).max()), ".png"))
     from room_pipeline.render.raycast import write_point_cloud
 
     for s in (1, 2, 4):

@@ -179,8 +179,9 @@ def visible_in_depth(rep: Reprojection, depth_t1: np.ndarray, hit_t1: np.ndarray
     inv = np.zeros(hit.shape, dtype=np.float32)
     np.divide(np.float32(1), depth_t1, out=inv, where=hit)
     h, w = hit.shape
-    mx = np.clip(rep.u1, 0, w - 1).astype(np.float32)
-    my = np.clip(rep.v1, 0, h - 1).astype(np.float32)
+    mx, my = rep.u1.astype(np.float32), rep.v1.astype(np.float32)     # then clipped: the same as clip, then cast
+    np.clip(mx, 0, w - 1, out=mx)
+    np.clip(my, 0, h - 1, out=my)
     s = cv2.remap(inv, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     # |1/s - z| <= tol  <=>  |1 - s z| <= tol s   (s > 0); no division
     sz = s * rep.z1

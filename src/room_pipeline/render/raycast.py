@@ -482,12 +482,12 @@ class RaycastRenderer:
             tm["rgb"] += time.perf_counter() - t0
         if "segmentation" in mods:
             t0 = time.perf_counter()
-            prim = np.where(c.hit, c.prim, np.uint32(self.scene.mesh.n_faces)).astype(np.intp)
-            res["primitive_ids"] = np.where(c.hit, c.prim.astype(np.int64), -1).astype(np.int32)
+            # no-hit pixels carry prim 0xFFFFFFFF (cast()), which is -1 as int32 and past the label table's end
+            res["primitive_ids"] = c.prim.view(np.int32).copy()
             if self._labels is None:
                 res["segmentation"] = np.where(c.hit, 0, -1).astype(np.int32)
             else:
-                res["segmentation"] = self._labels[np.minimum(prim, len(self._labels) - 1)]
+                res["segmentation"] = self._labels.take(np.minimum(c.prim, np.uint32(len(self._labels) - 1)))
             tm["segmentation"] += time.perf_counter() - t0
         if mods & {"point_cloud", "world_points"}:
             t0 = time.perf_counter()
