@@ -135,8 +135,8 @@ def write_exr(path: str | os.PathLike, array: np.ndarray, channels: Sequence[str
     as_json = [k for k in sorted(attributes or {}) if _set_attribute(spec, k, attributes[k])]
     if as_json:
         spec.attribute(JSON_LIST_ATTR, json.dumps(as_json))
-    # half files get half buffers, converted here by NumPy (round to nearest even, as OpenEXR's own conversion,
-    # so the same bytes, at about half the CPU time of OpenImageIO converting while it writes)
+    # half files get half buffers, converted here by NumPy (round to nearest even, as OpenEXR's own conversion:
+    # the same bytes, and less CPU than OpenImageIO converting while it writes)
     with np.errstate(over="ignore"):            # beyond the half range: inf, as OpenEXR's conversion gives
         data = np.ascontiguousarray(a, dtype=np.float16 if half else np.float32)
 
