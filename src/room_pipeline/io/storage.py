@@ -13,8 +13,9 @@ Precision per modality (what :meth:`StorageParams.precision` writes into
                PXR24 keeps 16 significant bits of each float32 and a multiple
                k 2^-17 m with k < 2^16 has no more, so it is stored exactly below
                2^16 x 2^-17 m = 0.5 m (the default far plane; beyond, PXR24 adds
-               <= 2^-16 x depth); half the bytes of ZIP and ~40 % less CPU
-               (benchmarks/results/write_throughput.md).  ``depth_quantum_m: 0``
+               <= 2^-16 x depth); less than half the bytes of ZIP at less
+               encoding CPU (116 vs 248 kB, 10.9 vs 14.2 ms a frame:
+               benchmarks/results/write_throughput.md).  ``depth_quantum_m: 0``
                keeps the cast's float32 (error 0 with a lossless codec, e.g. zip).
                ``depth_dtype: half`` stores half floats (relative error <= 2^-11:
                0.01 mm only up to 20 mm, so not the default).
@@ -23,11 +24,14 @@ Precision per modality (what :meth:`StorageParams.precision` writes into
     flow       half-float EXR (R, G = u, v pixels): |error| <= 2^-11 |flow| (0.016 px
                at 32 px), or ``flow_format: flo`` (Middlebury, float32, the paper's).
                Both PXR24-compressed: lossless on half floats (PXR24 only rounds
-               32-bit floats), and smaller and faster than ZIP on these images.
+               32-bit floats); smaller than ZIP (535 vs 544 kB normals, 235 vs
+               268 kB flow) at about the same encoding CPU, read 4-10x faster
+               (benchmarks/results/write_throughput.md).
     png        rgb, relative depth, segmentation, flow validity: lossless at every
-               zlib ``png_level`` (default 1: a quarter less CPU than 3 for ~15 % more
-               bytes); segmentation and flow validity with zlib's run-length strategy
-               (half the bytes of the default strategy at the same speed).
+               zlib ``png_level`` (default 1: about a third less CPU than 3 for
+               11-18 % more bytes on rgb and relative depth); segmentation and flow
+               validity with zlib's run-length strategy (half the bytes of the
+               default strategy at the same CPU).
 
 Point clouds (``point_clouds``)
     ``ply``: a compact binary PLY per frame of the valid (hit) pixels, every
