@@ -19,20 +19,28 @@ path.  Camera: the render config's default (600x600, 85 deg).
    mean bytes/frame over the sample x 448 (extrapolated from the sample, not a
    full render; say so when quoting it).
 3. Throughput, side by side in one run over ``--frames`` consecutive frames
-   of the sequence: the bare Open3D ray cast of every pixel (``RaycastingScene.
-   cast_rays``), then the render stage's own per-frame path (``_frame_worker``
-   + ``_render_block``: render, encode, write) for the geometric modalities
-   (depth, relative depth, normals, flow, segmentation) with the default
-   storage, with the writer threads off, with the previous storage (float32
-   EXR, .flo, no rounding), and every default modality.  Wall frames/s, CPU
-   ms/frame of the process, load average before/after.
+   of the sequence.  The headline pair, interleaved ``--rounds`` times so both
+   see the same share of the other users' load: the bare Open3D ray cast
+   (``RaycastingScene.create_rays_pinhole`` + ``cast_rays`` of every pixel on
+   the renderer's own BVH, hit distances fetched: what a user of Open3D alone
+   gets) and the render stage's own per-frame path (``_frame_worker`` +
+   ``_render_block``: render, encode, write, with the writer threads) for the
+   geometric modalities (depth, relative depth, normals, flow + validity,
+   segmentation) with the default storage.  Then, once each: the renderer's
+   own cast alone, the geometric path with the writer threads off, with the
+   storage of two rounds ago (float32 EXR, .flo, ZIP, PNG level 3, no
+   threads), and every default modality.  Wall frames/s, CPU ms/frame of the
+   process (all its threads), load average before/after.
+   ``--quick``: only the headline pair (``write_throughput_headline.{md,json}``).
 4. Memory: resident set size every 25 frames over ``--memory-frames`` frames
    (the sequence's poses repeated when it is shorter) through the same path.
 
 Wall times on the shared 2-core machine include the other users' load: the
 load average and the CPU time are printed next to them.
 
-    python benchmarks/write_throughput.py [--data data/output] [--sample 12] [--frames 80] [--memory-frames 500]
+    python benchmarks/write_throughput.py [--data data/output] [--sample 12] [--frames 80] [--rounds 2]
+                                          [--memory-frames 500]
+    python benchmarks/write_throughput.py --quick [--data data/output] [--frames 60] [--rounds 2]
 """
 from __future__ import annotations
 
@@ -62,7 +70,9 @@ from room_pipeline.io.storage import StorageParams, stride_mask  # noqa: E402
 SEQ_FRAMES = 448
 GEOMETRIC = ("depth", "relative_depth", "normals", "flow", "segmentation")
 DEFAULT_MODS = ("rgb", "depth", "relative_depth", "normals", "flow", "segmentation")
-OLD_STORAGE = {"depth_quantum_m": 0.0, "normals_dtype": "float32", "flow_format": "flo", "write_threads": 0}
+GEOMETRIC_DEFAULT = "geometric modalities rendered + written, default storage"
+OLD_STORAGE = {"depth_quantum_m": 0.0, "depth_compression": "zip", "normals_dtype": "float32",
+               "normals_compression": "zip", "flow_format": "flo", "png_level": 3, "write_threads": 0}
 
 
 def cpu_s() -> float:
@@ -144,9 +154,9 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     depth_err = lambda f, a: 1e3 * float(np.abs(a.astype(np.float64) - f["depth"].astype(np.float64))[f["hit"]].max())  # noqa: E731,E501
     for comp in ("none", "zip", "piz", "zips"):
         exr("depth", "depth", f"float32 {comp}", raw_depth, False, comp, depth_err, ("Y",))
-    for comp in ("zip", "piz"):
+    for comp in ("zip", "zip:1", "piz", "pxr24"):
         exr("depth", "depth", f"float32 rounded 2^-17 m, {comp}", rounded(q17), False, comp, depth_err, ("Y",),
-            default=comp == "zip")
+            default=comp == "pxr24")
     exr("depth", "depth", "float32 rounded 2^-16 m, zip", rounded(q16), False, "zip", depth_err, ("Y",))
     exr("depth", "depth", "float32 pxr24 (lossy 24-bit)", raw_depth, False, "pxr24", depth_err, ("Y",))
     exr("depth", "depth", "half zip", raw_depth, True, "zip", depth_err, ("Y",))
@@ -154,8 +164,8 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     nrm = lambda f: f["normals"]  # noqa: E731
     nrm_err = lambda f, a: float(np.abs(a - f["normals"]).max())  # noqa: E731
     exr("normals", "normals", "float32 zip (before)", nrm, False, "zip", nrm_err)
-    for comp in ("zip", "piz", "zips"):
-        exr("normals", "normals", f"half {comp}", nrm, True, comp, nrm_err, default=comp == "zip")
+    for comp in ("zip", "zip:1", "piz", "zips", "pxr24"):
+        exr("normals", "normals", f"half {comp}", nrm, True, comp, nrm_err, default=comp == "pxr24")
     exr("normals", "normals", "half dwaa (lossy)", nrm, True, "dwaa", nrm_err)
 
     flw = lambda f: f["flow"]  # noqa: E731
@@ -163,22 +173,29 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     cands.append(("flow", ".flo float32 (before)", False, lambda f, p: write_flo(p, f["flow"]), read_flo, flow_err,
                   ".flo"))
     exr("flow", "flow", "float32 zip", flw, False, "zip", flow_err, ("R", "G"))
-    for comp in ("zip", "piz", "zips"):
-        exr("flow", "flow", f"half {comp}", flw, True, comp, flow_err, ("R", "G"), default=comp == "zip")
+    for comp in ("zip", "zip:1", "piz", "zips", "pxr24"):
+        exr("flow", "flow", f"half {comp}", flw, True, comp, flow_err, ("R", "G"), default=comp == "pxr24")
+    # the noise stage writes rgb_noisy with write_png8's default level (io.images.PNG_COMPRESSION)
+    from room_pipeline.io.images import PNG_COMPRESSION
+
+    png_default = StorageParams().png_level
     for lvl in (1, 3, 6, 9):
-        cands.append(("rgb", f"png level {lvl}", lvl == 3, lambda f, p, l=lvl: write_png8(p, f["rgb"], l), read_png,
-                      lambda f, a: float(np.abs(a.astype(int) - f["rgb"]).max()), ".png"))
-        cands.append(("rgb_noisy", f"png level {lvl}", lvl == 3, lambda f, p, l=lvl: write_png8(p, f["rgb_noisy"], l),
+        cands.append(("rgb", f"png level {lvl}", lvl == png_default, lambda f, p, l=lvl: write_png8(p, f["rgb"], l),
+                      read_png, lambda f, a: float(np.abs(a.astype(int) - f["rgb"]).max()), ".png"))
+        cands.append(("rgb_noisy", f"png level {lvl}", lvl == PNG_COMPRESSION,
+                      lambda f, p, l=lvl: write_png8(p, f["rgb_noisy"], l),
                       read_png, lambda f, a: float(np.abs(a.astype(int) - f["rgb_noisy"]).max()), ".png"))
-        cands.append(("relative_depth", f"png16 level {lvl}", lvl == 3,
+        cands.append(("relative_depth", f"png16 level {lvl}", lvl == png_default,
                       lambda f, p, l=lvl: write_png16(p, f["relative_depth"], l), read_png,
                       lambda f, a: float(np.abs(a.astype(int) - f["relative_depth"]).max()), ".png"))
     seg = lambda f: (f["segmentation"] + 1).astype(np.uint16)  # noqa: E731
-    cands.append(("segmentation", "png16 level 3", True, lambda f, p: write_png16(p, seg(f), 3), read_png,
-                  lambda f, a: float(np.abs(a.astype(int) - seg(f)).max()), ".png"))
     vld = lambda f: f["flow_valid"].astype(np.uint8) * 255  # noqa: E731
-    cands.append(("flow_valid", "png level 3", True, lambda f, p: write_png8(p, vld(f), 3), read_png,
-                  lambda f, a: float(np.abs(a.astype(int) - vld(f)).max()), ".png"))
+    for rle in (False, True):
+        tag = f"level {png_default}" + (", RLE strategy" if rle else "")
+        cands.append(("segmentation", f"png16 {tag}", rle, lambda f, p, r=rle: write_png16(p, seg(f), png_default, r),
+                      read_png, lambda f, a: float(np.abs(a.astype(int) - seg(f)).max()), ".png"))
+        cands.append(("flow_valid", f"png {tag}", rle, lambda f, p, r=rle: write_png8(p, vld(f), png_default, r),
+                      read_png, lambda f, a: float(np.abs(a.astype(int) - vld(f)).max()), ".png"))
     from room_pipeline.render.raycast import write_point_cloud
 
     for s in (1, 2, 4):
@@ -213,7 +230,35 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
 # --------------------------------------------------------------------------- 3. throughput
 
 
-def bare_cast(scene, frames: list[int]) -> dict:
+def bare_cast(scene, frames: list[int], label: str = "bare Open3D ray cast (create_rays_pinhole + cast_rays)") -> dict:
+    """The floor: Open3D alone, as a user of it would cast a depth image, on the same BVH and poses.
+
+    ``RaycastingScene.create_rays_pinhole(K, world-to-camera, W, H)`` then ``cast_rays`` (all cores) and the
+    hit distances fetched as a NumPy array: no near plane, no other output used.
+    """
+    import open3d as o3d
+
+    from room_pipeline.render.raycast import RaycastRenderer
+
+    r = RaycastRenderer(scene)                                     # its Open3D scene: the same BVH
+    cam = scene.camera
+    K = o3d.core.Tensor(cam.K)
+
+    def one(i: int):
+        pose = np.array(scene.poses[i], dtype=np.float64)
+        pose[:3, 3] -= r.origin
+        rays = r._rc.create_rays_pinhole(K, o3d.core.Tensor(np.linalg.inv(pose)), cam.width, cam.height)
+        return r._rc.cast_rays(rays)["t_hit"].numpy()
+
+    one(frames[0])                                                 # warm-up
+    c0, w0 = cpu_s(), time.perf_counter()
+    for i in frames:
+        one(i)
+    return {"run": label, "frames": len(frames), "wall_s": time.perf_counter() - w0, "cpu_s": cpu_s() - c0}
+
+
+def own_cast(scene, frames: list[int]) -> dict:
+    """The renderer's own cast of every pixel (pixel_rays table, near-plane origins), nothing else."""
     from room_pipeline.render.raycast import RaycastRenderer
 
     r = RaycastRenderer(scene)
@@ -221,8 +266,38 @@ def bare_cast(scene, frames: list[int]) -> dict:
     c0, w0 = cpu_s(), time.perf_counter()
     for i in frames:
         r._cast_rays(scene.poses[i], r._rays32)["t_hit"].numpy()
-    return {"run": "bare Open3D cast (every pixel)", "frames": len(frames),
+    return {"run": "renderer's cast alone (RaycastRenderer._cast_rays)", "frames": len(frames),
             "wall_s": time.perf_counter() - w0, "cpu_s": cpu_s() - c0}
+
+
+def side_by_side(scene, p, tmp: Path, frames: list[int], ev: float, rounds: int) -> list[dict]:
+    """The headline pair, interleaved: ``rounds`` x (bare Open3D cast, geometric modalities rendered + written).
+
+    Interleaving gives both the same share of the other users' load; each row sums its rounds.
+    """
+    total: dict[str, dict] = {}
+    for _ in range(rounds):
+        for run in (bare_cast(scene, frames),
+                    stage_path(scene, p, tmp / "seq", GEOMETRIC, {}, frames, GEOMETRIC_DEFAULT, ev)):
+            t = total.setdefault(run["run"], {**run, "frames": 0, "wall_s": 0.0, "cpu_s": 0.0, "rounds": 0})
+            t["frames"] += run["frames"]
+            t["wall_s"] += run["wall_s"]
+            t["cpu_s"] += run["cpu_s"]
+            t["rounds"] += 1
+    return list(total.values())
+
+
+def rates(runs: list[dict]) -> list[dict]:
+    """frames/s, ms/frame and the fraction of the bare cast's throughput (first row) of every run."""
+    for r in runs:
+        r["fps"] = r["frames"] / r["wall_s"]
+        r["cpu_ms_per_frame"] = 1e3 * r["cpu_s"] / r["frames"]
+        r["wall_ms_per_frame"] = 1e3 * r["wall_s"] / r["frames"]
+    bare_fps, bare_cpu = runs[0]["fps"], runs[0]["cpu_ms_per_frame"]
+    for r in runs:
+        r["fraction_of_bare_wall"] = r["fps"] / bare_fps
+        r["fraction_of_bare_cpu"] = bare_cpu / r["cpu_ms_per_frame"]
+    return runs
 
 
 def stage_path(scene, p, seq: Path, mods, storage: dict, frames: list[int], label: str, ev: float,
@@ -237,7 +312,8 @@ def stage_path(scene, p, seq: Path, mods, storage: dict, frames: list[int], labe
     state = rs._frame_worker(scene, p2, str(seq), src, scene.timestamps, scene.poses, 0, None, 0)
     for f in rs.FOLDERS.values():
         (seq / f).mkdir(parents=True, exist_ok=True)
-    rs._render_block(state, (frames[0], frames[0] + 1))           # warm-up (normal tables, caches)
+    last = len(scene.poses) - 1                                    # warm-up (normal tables, threads) on a frame
+    rs._render_block(state, (last, last + 1))                      # outside the run: no cast of the run cached
     rss = []
     c0, w0 = cpu_s(), time.perf_counter()
     start, stop = frames[0], frames[-1] + 1
@@ -266,9 +342,17 @@ def main() -> None:
     ap.add_argument("--tmp", default=None, help="scratch folder (default: a temporary folder)")
     ap.add_argument("--memory-only", action="store_true",
                     help="only part 4; results in write_throughput_memory.{md,json}")
+    ap.add_argument("--rounds", type=int, default=2,
+                    help="interleaved rounds of the headline pair (bare cast, geometric rendered + written)")
+    ap.add_argument("--quick", action="store_true",
+                    help="only the headline pair (part 3's first two rows); results in "
+                         "write_throughput_headline.{md,json}")
     args = ap.parse_args()
     if args.memory_only:
         memory_only(args)
+        return
+    if args.quick:
+        headline(args)
         return
 
     from room_pipeline.noise.profile import NoiseProfile
@@ -311,26 +395,17 @@ def main() -> None:
         old[m] = next(r["bytes_per_frame"] for r in rows if r["modality"] == m and r["encoding"] == lab)
     seq_bytes, old_bytes = SEQ_FRAMES * sum(per_frame.values()), SEQ_FRAMES * sum(old.values())
 
-    # 3. throughput side by side
-    start = min(max(0, n // 3), max(0, n - args.frames - 2))
-    tframes = list(range(start, min(n - 1, start + args.frames)))
-    runs = [bare_cast(scene, tframes)]
+    # 3. throughput side by side (the headline pair interleaved, then the variants)
+    tframes = throughput_frames(n, args.frames)
     seq = tmp / "seq"
-    runs.append(stage_path(scene, p, seq, GEOMETRIC, {}, tframes, "geometric, default storage (threads 2)", ev))
+    runs = side_by_side(scene, p, tmp, tframes, ev, args.rounds)
+    runs.append(own_cast(scene, tframes))
     runs.append(stage_path(scene, p, seq, GEOMETRIC, {"write_threads": 0}, tframes,
                            "geometric, default storage, writer threads off", ev))
     runs.append(stage_path(scene, p, seq, GEOMETRIC, OLD_STORAGE, tframes,
                            "geometric, previous storage (float32 EXR, .flo, no threads)", ev))
     runs.append(stage_path(scene, p, seq, DEFAULT_MODS, {}, tframes, "every default modality, default storage", ev))
-    for r in runs:
-        r["fps"] = r["frames"] / r["wall_s"]
-        r["cpu_ms_per_frame"] = 1e3 * r["cpu_s"] / r["frames"]
-        r["wall_ms_per_frame"] = 1e3 * r["wall_s"] / r["frames"]
-    bare_fps = runs[0]["fps"]
-    bare_cpu = runs[0]["cpu_ms_per_frame"]
-    for r in runs:
-        r["fraction_of_bare_wall"] = r["fps"] / bare_fps
-        r["fraction_of_bare_cpu"] = bare_cpu / r["cpu_ms_per_frame"]
+    rates(runs)
 
     # 4. memory over many frames (poses repeated)
     mem = None
@@ -353,6 +428,59 @@ def main() -> None:
     write_json(RESULTS / "write_throughput.json", res)
     (RESULTS / "write_throughput.md").write_text(markdown(res))
     print(markdown(res))
+
+
+def throughput_frames(n: int, frames: int) -> list[int]:
+    """``frames`` consecutive frames from a third of the way into the sequence (each has a successor: flow)."""
+    start = min(max(0, n // 3), max(0, n - frames - 2))
+    return list(range(start, min(n - 1, start + frames)))
+
+
+def headline(args) -> None:
+    """The two headline numbers, measured side by side in one run (about 1-3 minutes on 2 cores)."""
+    from room_pipeline.render.raycast import RaycastRenderer
+
+    load0 = os.getloadavg()
+    mesh, labels, poses, ts, info = load_inputs(args)
+    scene, p = make_scene(mesh, labels, poses, ts)
+    ev = RaycastRenderer(scene).exposure_ev
+    scene.film = dataclasses.replace(scene.film, exposure_ev=ev)
+    tmp = Path(args.tmp or tempfile.mkdtemp(prefix="room_write_quick_"))
+    tframes = throughput_frames(len(poses), args.frames)
+    runs = rates(side_by_side(scene, p, tmp, tframes, ev, args.rounds))
+    shutil.rmtree(tmp, ignore_errors=True)
+    res = {"inputs": info, "camera": scene.camera.to_dict(), "throughput_frames": [tframes[0], tframes[-1]],
+           "rounds": args.rounds, "throughput": runs, "load_average_before": load0,
+           "load_average_after": os.getloadavg(), "cpu_count": os.cpu_count(), "machine": platform.platform(),
+           "command": "python benchmarks/write_throughput.py " + " ".join(sys.argv[1:])}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / "write_throughput_headline.json", res)
+    md = headline_markdown(res)
+    (RESULTS / "write_throughput_headline.md").write_text(md)
+    print(md)
+
+
+def headline_markdown(res: dict) -> str:
+    i = res["inputs"]
+    bare, geo = res["throughput"][0], res["throughput"][1]
+    t0, t1 = res["throughput_frames"]
+    L = ["# Write throughput: geometric modalities rendered + written vs the bare Open3D ray cast", "",
+         f"`{res['command']}`.  Inputs: {i['source']} ({i['faces']} faces), frames {t0}..{t1} in order, "
+         f"{res['rounds']} interleaved rounds; camera {res['camera']['width']}x{res['camera']['height']}.  "
+         f"Load average {res['load_average_before'][0]:.2f} -> {res['load_average_after'][0]:.2f} on "
+         f"{res['cpu_count']} cores (wall times include other users' load; CPU times are this process's, "
+         f"all its threads).", "",
+         "| run | frames/s (wall) | wall ms/frame | CPU ms/frame | vs bare cast (wall) | vs bare cast (CPU) |",
+         "|---|---|---|---|---|---|"]
+    for r in res["throughput"]:
+        L.append(f"| {r['run']} | {r['fps']:.2f} | {r['wall_ms_per_frame']:.1f} | {r['cpu_ms_per_frame']:.1f} | "
+                 f"{100 * r['fraction_of_bare_wall']:.0f} % | {100 * r['fraction_of_bare_cpu']:.0f} % |")
+    L += ["", f"Headline: **{geo['fps']:.2f} frames/s** written for the geometric modalities (target >= 12 on 2 "
+              f"cores), **{100 * geo['fraction_of_bare_wall']:.0f} %** of the bare cast's throughput "
+              f"({bare['fps']:.2f} frames/s) in wall time (target >= 40 %), "
+              f"{100 * geo['fraction_of_bare_cpu']:.0f} % in CPU time; "
+              f"{geo['cpu_ms_per_frame']:.1f} vs {bare['cpu_ms_per_frame']:.1f} CPU ms/frame."]
+    return "\n".join(L) + "\n"
 
 
 def memory_only(args) -> None:

@@ -17,8 +17,9 @@ from room_pipeline.io.images import read_exr, read_flo, write_exr
 from room_pipeline.io.storage import FrameWriter, StorageParams, stride_mask
 from tests.test_dataset import N_FRAMES, SIZE, render_sequence
 
-#: the storage of the float32 reference: what the renderer computed, unrounded
-EXACT = {"depth_quantum_m": 0.0, "normals_dtype": "float32", "flow_dtype": "float32", "point_clouds": "ply"}
+#: the storage of the float32 reference: what the renderer computed, unrounded (ZIP: pxr24 rounds 32-bit floats)
+EXACT = {"depth_quantum_m": 0.0, "normals_dtype": "float32", "flow_dtype": "float32", "point_clouds": "ply",
+         "depth_compression": "zip", "normals_compression": "zip", "flow_compression": "zip"}
 MODS = ("rgb", "depth", "relative_depth", "normals", "flow", "segmentation", "point_cloud")
 
 
@@ -82,6 +83,35 @@ def test_depth_rounding_error_over_the_working_range(tmp_path):
     half = read_exr(tmp_path / "h.exr")[0].astype(np.float64)
     far = depth > 0.05
     assert np.abs(half - depth)[far].max() > 1e-5                    # why depth is not half by default
+
+
+def test_pxr24_keeps_the_depth_grid_below_half_a_metre_and_half_floats_exactly(tmp_path):
+    """Default depth codec PXR24 (16 significant bits): k 2^-17 m with k < 2^16 is stored exactly, beyond the
+    stated 2^-16 x depth holds; on half-float normals and flow PXR24 is lossless."""
+    rng = np.random.default_rng(1)
+    st = StorageParams()
+    assert st.depth_compression == "pxr24" and st.normals_compression == "pxr24" and st.flow_compression == "pxr24"
+    doc = st.precision()["depth"]
+    assert doc["exact_below_m"] == 0.5 and "2^-16" in doc["error"]
+    near = np.exp(rng.uniform(np.log(1e-4), np.log(0.5), size=(48, 48))).astype(np.float32)
+    near[0, :4] = [0.5, 0.5 - 2.0 ** -17, 2.0 ** -17, 0.0]              # the far plane, its neighbour, 1 quantum, no hit
+    far = rng.uniform(0.5, 4.0, size=(48, 48)).astype(np.float32)       # beyond the default far plane
+    for depth, exact in ((near, True), (far, False)):
+        stored = st.depth_array(depth, depth > 0)
+        st.write_depth(tmp_path / "d.exr", depth, depth > 0)
+        back = read_exr(tmp_path / "d.exr")[0].astype(np.float64)
+        if exact:
+            assert np.array_equal(back, stored.astype(np.float64))
+        else:
+            assert np.all(np.abs(back - stored) <= 2.0 ** -16 * stored)
+            assert np.all(np.abs(back - depth) <= 2.0 ** -18 * (1 + 1e-6) + 2.0 ** -16 * depth)
+    n = rng.normal(size=(40, 40, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    flow = rng.normal(scale=30.0, size=(40, 40, 2)).astype(np.float32)
+    st.write_normals(tmp_path / "n.exr", n)
+    st.write_flow(tmp_path / "f.exr", flow)
+    assert np.array_equal(read_exr(tmp_path / "n.exr")[0], n.astype(np.float16).astype(np.float32))
+    assert np.array_equal(read_exr(tmp_path / "f.exr")[0], flow.astype(np.float16).astype(np.float32))
 
 
 def test_files_open_in_their_standard_readers(seqs):

@@ -25,7 +25,8 @@ PNG (OpenCV)
     ``write_png8`` / ``write_png16``: (H, W) grey, (H, W, 3) RGB or (H, W, 4)
     RGBA arrays (channel order **RGB**, converted to OpenCV's BGR on writing
     and back on reading), uint8 / uint16; zlib level ``level`` (0-9, default
-    :data:`PNG_COMPRESSION`; lossless at every level, only size and time change).
+    :data:`PNG_COMPRESSION`; lossless at every level, only size and time change;
+    ``rle=True``: zlib's run-length strategy, for label images and masks).
 
 Middlebury optical flow ``.flo``
     Little-endian: the float32 ``202021.25`` (the bytes ``PIEH``), int32
@@ -134,7 +135,10 @@ def write_exr(path: str | os.PathLike, array: np.ndarray, channels: Sequence[str
     as_json = [k for k in sorted(attributes or {}) if _set_attribute(spec, k, attributes[k])]
     if as_json:
         spec.attribute(JSON_LIST_ATTR, json.dumps(as_json))
-    data = np.ascontiguousarray(a, dtype=np.float32)
+    # half files get half buffers, converted here by NumPy (round to nearest even, as OpenEXR's own conversion:
+    # the same bytes, and less CPU than OpenImageIO converting while it writes)
+    with np.errstate(over="ignore"):            # beyond the half range: inf, as OpenEXR's conversion gives
+        data = np.ascontiguousarray(a, dtype=np.float16 if half else np.float32)
 
     def writer(tmp: Path) -> None:
         out = oiio.ImageOutput.create(str(tmp))
@@ -189,7 +193,7 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...], dict
 # --------------------------------------------------------------------------- PNG
 
 
-def _png_bytes(image: np.ndarray, dtype, level: int = PNG_COMPRESSION) -> bytes:
+def _png_bytes(image: np.ndarray, dtype, level: int = PNG_COMPRESSION, rle: bool = False) -> bytes:
     import cv2
 
     a = np.asarray(image)
@@ -206,20 +210,24 @@ def _png_bytes(image: np.ndarray, dtype, level: int = PNG_COMPRESSION) -> bytes:
             raise ValueError(f"PNG needs 1, 3 or 4 channels, got {a.shape[2]}")
     elif a.ndim != 2:
         raise ValueError(f"PNG image must be (H, W) or (H, W, C), got shape {a.shape}")
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a), [cv2.IMWRITE_PNG_COMPRESSION, int(level)])
+    flags = [cv2.IMWRITE_PNG_COMPRESSION, int(level)]
+    if rle:
+        flags += [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a), flags)
     if not ok:
         raise OSError("OpenCV failed to encode PNG")
     return buf.tobytes()
 
 
-def write_png8(path: str | os.PathLike, image: np.ndarray, level: int = PNG_COMPRESSION) -> None:
-    """8-bit PNG (grey, RGB or RGBA uint8), atomically; ``level``: zlib level 0-9."""
-    write_bytes(path, _png_bytes(image, np.uint8, level))
+def write_png8(path: str | os.PathLike, image: np.ndarray, level: int = PNG_COMPRESSION, rle: bool = False) -> None:
+    """8-bit PNG (grey, RGB or RGBA uint8), atomically; ``level``: zlib level 0-9; ``rle``: zlib's run-length
+    strategy (label images and masks: about half the bytes of the default strategy at the same speed)."""
+    write_bytes(path, _png_bytes(image, np.uint8, level, rle))
 
 
-def write_png16(path: str | os.PathLike, image: np.ndarray, level: int = PNG_COMPRESSION) -> None:
-    """16-bit PNG (grey, RGB or RGBA uint16), atomically; ``level``: zlib level 0-9."""
-    write_bytes(path, _png_bytes(image, np.uint16, level))
+def write_png16(path: str | os.PathLike, image: np.ndarray, level: int = PNG_COMPRESSION, rle: bool = False) -> None:
+    """16-bit PNG (grey, RGB or RGBA uint16), atomically; ``level``: zlib level 0-9; ``rle`` as for 8 bits."""
+    write_bytes(path, _png_bytes(image, np.uint16, level, rle))
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:

@@ -9,15 +9,29 @@ Precision per modality (what :meth:`StorageParams.precision` writes into
 ``calibration/camera_params.json`` and ``metadata/render.json`` "storage")
     depth      float32 EXR (channel Y, metres) rounded to multiples of
                ``depth_quantum_m`` (default 2^-17 m: error <= 2^-18 m = 0.0038 mm
-               at any depth, so ZIP finds the zero low bits); 0 keeps the cast's
-               float32 (error 0).  ``depth_dtype: half`` stores half floats
-               (relative error <= 2^-11: 0.01 mm only up to 20 mm, so not the default).
+               at any depth), PXR24 compression (default ``depth_compression``):
+               PXR24 keeps 16 significant bits of each float32 and a multiple
+               k 2^-17 m with k < 2^16 has no more, so it is stored exactly below
+               2^16 x 2^-17 m = 0.5 m (the default far plane; beyond, PXR24 adds
+               <= 2^-16 x depth); less than half the bytes of ZIP at less
+               encoding CPU (116 vs 248 kB, 10.9 vs 14.2 ms a frame:
+               benchmarks/results/write_throughput.md).  ``depth_quantum_m: 0``
+               keeps the cast's float32 (error 0 with a lossless codec, e.g. zip).
+               ``depth_dtype: half`` stores half floats (relative error <= 2^-11:
+               0.01 mm only up to 20 mm, so not the default).
     normals    half-float EXR (R, G, B = x, y, z of the unit normal): |error| <= 2^-12
                (2.4e-4) per component, since every component lies in [-1, 1].
     flow       half-float EXR (R, G = u, v pixels): |error| <= 2^-11 |flow| (0.016 px
                at 32 px), or ``flow_format: flo`` (Middlebury, float32, the paper's).
+               Both PXR24-compressed: lossless on half floats (PXR24 only rounds
+               32-bit floats); smaller than ZIP (535 vs 544 kB normals, 235 vs
+               268 kB flow) at about the same encoding CPU, read 4-10x faster
+               (benchmarks/results/write_throughput.md).
     png        rgb, relative depth, segmentation, flow validity: lossless at every
-               zlib ``png_level``.
+               zlib ``png_level`` (default 1: about a third less CPU than 3 for
+               11-18 % more bytes on rgb and relative depth); segmentation and flow
+               validity with zlib's run-length strategy (half the bytes of the
+               default strategy at the same CPU).
 
 Point clouds (``point_clouds``)
     ``ply``: a compact binary PLY per frame of the valid (hit) pixels, every
@@ -47,7 +61,7 @@ import numpy as np
 
 from ..config.params import params_from_dict
 from ..errors import ConfigError
-from .images import EXR_COMPRESSIONS
+from .images import EXR_COMPRESSIONS, write_exr, write_flo, write_png8, write_png16
 
 #: 2^-17 m ~ 7.6 um: depth rounding step of the default (error <= half of it)
 DEFAULT_DEPTH_QUANTUM_M = 2.0 ** -17
@@ -61,13 +75,13 @@ class StorageParams:
 
     depth_dtype: str = "float32"
     depth_quantum_m: float = DEFAULT_DEPTH_QUANTUM_M
-    depth_compression: str = "zip"
+    depth_compression: str = "pxr24"
     normals_dtype: str = "half"
-    normals_compression: str = "zip"
+    normals_compression: str = "pxr24"
     flow_format: str = "exr"
     flow_dtype: str = "half"
-    flow_compression: str = "zip"
-    png_level: int = 3
+    flow_compression: str = "pxr24"
+    png_level: int = 1
     point_clouds: str = "on_demand"
     point_cloud_stride: int = 1
     write_threads: int = 2
@@ -118,6 +132,40 @@ class StorageParams:
                 d = (np.rint(d.astype(np.float64) / q) * q).astype(np.float32)
         return d
 
+    def _pow2_quantum(self) -> bool:
+        q = float(self.depth_quantum_m)
+        return q > 0 and float(np.frexp(q)[0]) == 0.5
+
+    # ------------------------------------------------------------------ files (run on the writer threads)
+    def write_depth(self, path, depth: np.ndarray, hit: np.ndarray) -> None:
+        """``depth/frame_NNNN.exr``: :meth:`depth_array` (a new array: ``depth`` is only read)."""
+        write_exr(path, self.depth_array(depth, hit), channels=("Y",), half=self.depth_dtype == "half",
+                  compression=self.depth_compression,
+                  attributes={"units": "m", "quantity": "planar z depth, 0 = no hit",
+                              "quantum_m": float(self.depth_quantum_m) if self.depth_dtype == "float32" else 0.0})
+
+    def write_normals(self, path, normals: np.ndarray) -> None:
+        """``surface_normals/frame_NNNN.exr``: (H, W, 3) unit normals, camera frame."""
+        write_exr(path, normals, half=self.normals_dtype == "half", compression=self.normals_compression,
+                  attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
+
+    def write_flow(self, path, flow: np.ndarray) -> None:
+        """``optical_flow/frame_NNNN.exr`` (or ``.flo``): (H, W, 2) forward flow in pixels."""
+        if self.flow_format == "flo":
+            write_flo(path, flow)
+            return
+        write_exr(path, flow, channels=("R", "G"), half=self.flow_dtype == "half", compression=self.flow_compression,
+                  attributes={"units": "px", "quantity": "forward optical flow t -> t+1; R = u (columns), "
+                                                         "G = v (rows)"})
+
+    def write_flow_valid(self, path, valid: np.ndarray) -> None:
+        """``optical_flow/valid_NNNN.png``: 8-bit, 255 = valid (zlib's run-length strategy: a mask)."""
+        write_png8(path, np.asarray(valid, dtype=bool).view(np.uint8) * np.uint8(255), self.png_level, rle=True)
+
+    def write_segmentation(self, path, labels: np.ndarray) -> None:
+        """``segmentation/frame_NNNN.png``: 16-bit, label + 1 (0 = no hit), run-length strategy."""
+        write_png16(path, (labels + 1).astype(np.uint16), self.png_level, rle=True)
+
     @property
     def flow_ext(self) -> str:
         return ".exr" if self.flow_format == "exr" else ".flo"
@@ -151,7 +199,9 @@ class StorageParams:
                                   else "float32 (relative 2^-24)")},
             "flow": flow,
             "png": {"files": "rgb, relative_depth (16-bit), segmentation (16-bit), flow validity (8-bit)",
-                    "zlib_level": int(self.png_level), "error": "lossless"},
+                    "zlib_level": int(self.png_level),
+                    "zlib_strategy": "default; run-length (Z_RLE) for segmentation and flow validity",
+                    "error": "lossless"},
             "point_clouds": self.point_cloud_doc(),
         }
         for mod, comp, dtype in (("depth", self.depth_compression, self.depth_dtype),
@@ -160,7 +210,12 @@ class StorageParams:
             name = comp.split(":")[0]
             if mod == "flow" and self.flow_format == "flo" or EXR_COMPRESSIONS[name]:
                 continue
-            if name == "pxr24" and dtype == "float32":     # float32 rounded to 24 bits (15 mantissa bits)
+            if name == "pxr24" and dtype == "float32" and mod == "depth" and self._pow2_quantum():
+                # multiples k q of a power-of-two quantum with k < 2^16 have <= 16 significant bits: pxr24 keeps them
+                out[mod]["error"] += (f"; pxr24 codec (16 significant bits) stores these exactly below "
+                                      f"2^16 x quantum = {65536 * q:.6g} m, beyond adds <= 2^-16 x depth")
+                out[mod]["exact_below_m"] = 65536 * q
+            elif name == "pxr24" and dtype == "float32":   # float32 rounded to 24 bits (15 mantissa bits)
                 out[mod]["error"] += "; pxr24 codec: plus <= 2^-16 relative"
             elif name == "pxr24":
                 continue                                    # pxr24 keeps half floats exactly

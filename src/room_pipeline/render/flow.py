@@ -50,43 +50,79 @@ class Reprojection:
     """Frame-t pixels carried into camera t+1.
 
     flow: (H, W, 2) float32 pixels (0 where ``hit_t`` is False);
-    uv1: (H, W, 2) float64 target pixel ``p'``;
-    z1: (H, W) float64 planar depth of the point in camera t+1;
+    u1, v1: (H, W) float64 target pixel ``p' = (u1, v1)`` (``uv1``: the two stacked, (H, W, 2));
+    z1: (H, W) float64 planar depth of the point in camera t+1 (0 where ``hit_t`` is False);
     in_view: (H, W) bool -- hit at t, in front of camera t+1, ``p'`` inside the image.
     """
 
     flow: np.ndarray
-    uv1: np.ndarray
+    u1: np.ndarray
+    v1: np.ndarray
     z1: np.ndarray
     in_view: np.ndarray
+
+    @property
+    def uv1(self) -> np.ndarray:
+        return np.stack([self.u1, self.v1], axis=-1)
 
 
 def reproject(depth_t: np.ndarray, hit_t: np.ndarray, camera: CameraIntrinsics, pose_t: np.ndarray,
               pose_t1: np.ndarray, rays: np.ndarray | None = None) -> Reprojection:
-    """Carry every surface pixel of frame t into camera t+1 (float64 arithmetic)."""
+    """Carry every surface pixel of frame t into camera t+1 (float64 arithmetic).
+
+    Written for speed (the render stage calls it every frame): each (H, W)
+    float64 quantity is computed in place in one buffer and the flow is
+    written straight into its float32 array; the operations and their order
+    are those of the plain formulas, so the values are bit for bit the same.
+    """
     hit = np.asarray(hit_t, dtype=bool)
     rays = camera.pixel_rays() if rays is None else rays
+    rx, ry = rays[..., 0], rays[..., 1]
     d = np.where(hit, np.asarray(depth_t, dtype=np.float64), 0.0)
     T = relative_pose(pose_t, pose_t1)
     R, t = T[:3, :3], T[:3, 3]
-    # X1 = R (d * ray) + t, component by component (no (H, W, 3) temporaries beyond the result)
-    x1 = d * (R[0, 0] * rays[..., 0] + R[0, 1] * rays[..., 1] + R[0, 2]) + t[0]
-    y1 = d * (R[1, 0] * rays[..., 0] + R[1, 1] * rays[..., 1] + R[1, 2]) + t[1]
-    z1 = d * (R[2, 0] * rays[..., 0] + R[2, 1] * rays[..., 1] + R[2, 2]) + t[2]
-    front = hit & (z1 > camera.near)
+
+    def row(k: int) -> np.ndarray:
+        # X1[k] = d * (R[k, 0] * ray_x + R[k, 1] * ray_y + R[k, 2]) + t[k]   (ray_z = 1)
+        out = rx * R[k, 0]
+        out += ry * R[k, 1]
+        out += R[k, 2]
+        out *= d
+        out += t[k]
+        return out
+
+    x1, y1, z1 = row(0), row(1), row(2)
+    front = z1 > camera.near
+    front &= hit
     zs = np.where(front, z1, 1.0)
-    u1 = camera.fx * x1 / zs + camera.cx
-    v1 = camera.fy * y1 / zs + camera.cy
     h, w = hit.shape
-    uu = np.arange(w, dtype=np.float64)[None, :]
-    vv = np.arange(h, dtype=np.float64)[:, None]
+    if any(float(c) != 0.0 for c in camera.distortion):    # the camera's own projection (lens model)
+        uv = camera.project(np.stack([x1, y1, zs], axis=-1).reshape(-1, 3))
+        u1, v1 = uv[:, 0].reshape(h, w), uv[:, 1].reshape(h, w)
+    else:                                                   # u1 = fx * x1 / zs + cx, v1 = fy * y1 / zs + cy
+        u1 = x1
+        u1 *= camera.fx
+        u1 /= zs
+        u1 += camera.cx
+        v1 = y1
+        v1 *= camera.fy
+        v1 /= zs
+        v1 += camera.cy
+    uu = np.broadcast_to(np.arange(w, dtype=np.float64)[None, :], (h, w))
+    vv = np.broadcast_to(np.arange(h, dtype=np.float64)[:, None], (h, w))
     e = EDGE_EPS_PX
-    in_view = front & (u1 >= -e) & (u1 <= w - 1 + e) & (v1 >= -e) & (v1 <= h - 1 + e)
-    u1 = np.where(front, u1, uu)
-    v1 = np.where(front, v1, vv)
-    flow = np.stack([u1 - uu, v1 - vv], axis=-1).astype(np.float32)
-    flow[~hit] = 0.0
-    return Reprojection(flow=flow, uv1=np.stack([u1, v1], axis=-1), z1=np.where(hit, z1, 0.0), in_view=in_view)
+    in_view = (u1 >= -e) & (u1 <= w - 1 + e) & (v1 >= -e) & (v1 <= h - 1 + e)
+    in_view &= front
+    behind = ~front
+    np.copyto(u1, uu, where=behind)
+    np.copyto(v1, vv, where=behind)
+    flow = np.empty((h, w, 2), dtype=np.float32)
+    np.subtract(u1, uu, out=flow[..., 0], casting="unsafe")
+    np.subtract(v1, vv, out=flow[..., 1], casting="unsafe")
+    miss = ~hit
+    flow[miss] = 0.0
+    z1[miss] = 0.0
+    return Reprojection(flow=flow, u1=u1, v1=v1, z1=z1, in_view=in_view)
 
 
 def sample_inverse_depth(depth: np.ndarray, hit: np.ndarray, uv: np.ndarray
@@ -143,8 +179,9 @@ def visible_in_depth(rep: Reprojection, depth_t1: np.ndarray, hit_t1: np.ndarray
     inv = np.zeros(hit.shape, dtype=np.float32)
     np.divide(np.float32(1), depth_t1, out=inv, where=hit)
     h, w = hit.shape
-    mx = np.clip(rep.uv1[..., 0], 0, w - 1).astype(np.float32)
-    my = np.clip(rep.uv1[..., 1], 0, h - 1).astype(np.float32)
+    mx, my = rep.u1.astype(np.float32), rep.v1.astype(np.float32)     # then clipped: the same as clip, then cast
+    np.clip(mx, 0, w - 1, out=mx)
+    np.clip(my, 0, h - 1, out=my)
     s = cv2.remap(inv, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     # |1/s - z| <= tol  <=>  |1 - s z| <= tol s   (s > 0); no division
     sz = s * rep.z1

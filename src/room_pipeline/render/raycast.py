@@ -152,7 +152,8 @@ class RaycastRenderer:
         cam = scene.camera
         self.rays = cam.pixel_rays()                                  # (H, W, 3) float64, z = 1
         self._rays32 = self.rays.reshape(-1, 3).astype(np.float32)
-        self._rays_soa = (np.ascontiguousarray(self._rays32[:, 0]), np.ascontiguousarray(self._rays32[:, 1]))
+        self._rays_soa = tuple(np.ascontiguousarray(self._rays32[:, k]) for k in range(3))   # x, y, z
+        self._unit_z = bool(np.all(self._rays_soa[2] == 1.0))
         len2 = np.einsum("hwi,hwi->hw", self.rays, self.rays)
         self._ray_len2 = len2.astype(np.float32)
         self._inv_ray_len = (1.0 / np.sqrt(len2)).astype(np.float32)
@@ -186,15 +187,48 @@ class RaycastRenderer:
     def __len__(self) -> int:
         return len(self.scene.poses)
 
+    def _ray_matrix(self, pose: np.ndarray) -> np.ndarray:
+        """(4, 6) ``M`` with ``[d, 1] @ M = [origin, direction]``, the world ray of camera-frame direction ``d``.
+
+        direction = R d, origin = c + near R d (on the near plane; c in the scene's shifted frame).
+        """
+        pose = np.asarray(pose, dtype=np.float64)
+        R = pose[:3, :3]
+        m = np.zeros((4, 6))
+        m[:3, :3] = self.scene.camera.near * R.T
+        m[3, :3] = pose[:3, 3] - self.origin
+        m[:3, 3:] = R.T
+        return m
+
     def _cast_rays(self, pose: np.ndarray, dirs_cam: np.ndarray) -> dict:
-        """Cast camera-frame directions (N, 3) float32 (z = 1) from the pose's near plane."""
-        R = pose[:3, :3].astype(np.float32)
-        c = (pose[:3, 3] - self.origin).astype(np.float32)
-        rays = np.empty((len(dirs_cam), 6), dtype=np.float32)
-        np.matmul(dirs_cam, R.T, out=rays[:, 3:])
-        near = np.float32(self.scene.camera.near)
-        np.multiply(rays[:, 3:], near, out=rays[:, :3])
-        rays[:, :3] += c
+        """Cast camera-frame directions (N, 3) float32 (z = 1) from the pose's near plane.
+
+        Each of the six float32 columns of the (N, 6) rays is ``x M[0] + y M[1] + z M[2] + M[3]``
+        (:meth:`_ray_matrix`), from the direction components stored contiguously (built once for the
+        image's ``pixel_rays()``): a few vector operations a frame, no (N, 3) rotation through strided
+        views, and no BLAS call (whose thread pool spins on a loaded machine).
+        """
+        if dirs_cam is self._rays32:
+            x, y, z = self._rays_soa
+        else:
+            d = np.asarray(dirs_cam, dtype=np.float32)
+            x, y, z = (np.ascontiguousarray(d[:, k]) for k in range(3))
+        m = self._ray_matrix(pose).astype(np.float32)
+        n = len(x)
+        rays = np.empty((n, 6), dtype=np.float32)
+        acc, tmp = np.empty(n, dtype=np.float32), np.empty(n, dtype=np.float32)
+        unit_z = z is self._rays_soa[2] and self._unit_z
+        for k in range(6):
+            np.multiply(x, m[0, k], out=acc)
+            np.multiply(y, m[1, k], out=tmp)
+            acc += tmp
+            if unit_z:
+                acc += m[2, k] + m[3, k]
+            else:
+                np.multiply(z, m[2, k], out=tmp)
+                acc += tmp
+                acc += m[3, k]
+            rays[:, k] = acc
         out = self._rc.cast_rays(self._o3d.core.Tensor.from_numpy(rays), nthreads=self.config.nthreads)
         self.cast_count += 1
         return out
@@ -277,7 +311,7 @@ class RaycastRenderer:
         nf = len(fn)
         flip = np.where(np.einsum("ij,ij->i", fn, v0 - centre) > 0, -1.0, 1.0)
         prim = np.where(c.hit, c.prim, np.uint32(nf)).astype(np.intp).reshape(-1)
-        rx, ry = self._rays_soa
+        rx, ry = self._rays_soa[:2]
         # per-frame tables, camera frame, side folded in, components first (structure of arrays)
         flat = np.zeros((3, nf + 1), dtype=np.float32)
         flat[:, :-1] = ((fn * flip[:, None]) @ R).T                            # R^T n
@@ -448,12 +482,12 @@ class RaycastRenderer:
             tm["rgb"] += time.perf_counter() - t0
         if "segmentation" in mods:
             t0 = time.perf_counter()
-            prim = np.where(c.hit, c.prim, np.uint32(self.scene.mesh.n_faces)).astype(np.intp)
-            res["primitive_ids"] = np.where(c.hit, c.prim.astype(np.int64), -1).astype(np.int32)
+            # no-hit pixels carry prim 0xFFFFFFFF (cast()), which is -1 as int32 and past the label table's end
+            res["primitive_ids"] = c.prim.view(np.int32).copy()
             if self._labels is None:
                 res["segmentation"] = np.where(c.hit, 0, -1).astype(np.int32)
             else:
-                res["segmentation"] = self._labels[np.minimum(prim, len(self._labels) - 1)]
+                res["segmentation"] = self._labels.take(np.minimum(c.prim, np.uint32(len(self._labels) - 1)))
             tm["segmentation"] += time.perf_counter() - t0
         if mods & {"point_cloud", "world_points"}:
             t0 = time.perf_counter()

@@ -54,7 +54,7 @@ from ..conventions import MM, metadata_block
 from ..errors import ConfigError, InputError
 from ..execution import ExecutionParams, ensure_writable, make_executor, remove_stale_temp_files
 from ..io.atomic import write_json
-from ..io.images import write_exr, write_flo, write_png8, write_png16
+from ..io.images import write_png8, write_png16
 from ..io.storage import POINT_CLOUD_JSON, FrameWriter, StorageParams, stride_mask
 from ..io.mesh import Mesh, read_obj
 from ..render.camera import CameraIntrinsics
@@ -357,42 +357,32 @@ def _render_block(state: dict, block: tuple[int, int]) -> list[dict]:
 def _render_frame(state: dict, i: int) -> dict:
     """Render frame ``i``, hand its files to the writer (atomic writes) and return its record and summary numbers.
 
-    Every array handed over is one the renderer will not touch again (fresh
-    arrays per frame; the cached cast's depth is copied by ``depth_array``).
+    Every array handed over is one the renderer will not touch again: fresh
+    arrays per frame, and the cached cast's depth, which nothing writes to
+    (``StorageParams.write_depth`` rounds a copy, on the writer thread).
     """
     seq, src, ts, poses = state["seq"], state["src"], state["ts"], state["poses"]
     st: StorageParams = state["storage"]
     put = state["writer"].submit
-    lvl = int(st.png_level)
     out = state["r"].render(i, state["mods"])
     name = f"frame_{i:04d}"
     hit = out["hit"]
     rec = {"index": i, "source_index": int(src[i]), "timestamp": float(ts[src[i]]),
            "pose": np.round(poses[src[i]], 12).tolist(), "hit_fraction": float(hit.mean())}
     flow_valid = None
+    # conversions (depth rounding, label + 1, mask to 8 bits, half floats) run on the writer threads too
     if "rgb" in out:
-        put(write_png8, seq / "rgb" / f"{name}.png", out["rgb"], lvl)
+        put(write_png8, seq / "rgb" / f"{name}.png", out["rgb"], int(st.png_level))
     if "depth" in out:
-        put(write_exr, seq / "depth" / f"{name}.exr", st.depth_array(out["depth"], hit),
-            channels=("Y",), half=st.depth_dtype == "half", compression=st.depth_compression,
-            attributes={"units": "m", "quantity": "planar z depth, 0 = no hit",
-                        "quantum_m": float(st.depth_quantum_m) if st.depth_dtype == "float32" else 0.0})
+        put(st.write_depth, seq / "depth" / f"{name}.exr", out["depth"], hit)
     if "relative_depth" in out:
-        put(write_png16, seq / "relative_depth" / f"{name}.png", out["relative_depth"], lvl)
+        put(write_png16, seq / "relative_depth" / f"{name}.png", out["relative_depth"], int(st.png_level))
         rec["relative_depth_range_m"] = [float(x) for x in out["relative_depth_range"]]
     if "normals" in out:
-        put(write_exr, seq / "surface_normals" / f"{name}.exr", out["normals"], half=st.normals_dtype == "half",
-            compression=st.normals_compression,
-            attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
+        put(st.write_normals, seq / "surface_normals" / f"{name}.exr", out["normals"])
     if "flow" in out:
-        if st.flow_format == "exr":
-            put(write_exr, seq / "optical_flow" / f"{name}.exr", out["flow"], channels=("R", "G"),
-                half=st.flow_dtype == "half", compression=st.flow_compression,
-                attributes={"units": "px", "quantity": "forward optical flow t -> t+1; R = u (columns), "
-                                                       "G = v (rows)"})
-        else:
-            put(write_flo, seq / "optical_flow" / f"{name}.flo", out["flow"].astype(np.float32))
-        put(write_png8, seq / "optical_flow" / f"valid_{i:04d}.png", out["flow_valid"].astype(np.uint8) * 255, lvl)
+        put(st.write_flow, seq / "optical_flow" / f"{name}{st.flow_ext}", out["flow"])
+        put(st.write_flow_valid, seq / "optical_flow" / f"valid_{i:04d}.png", out["flow_valid"])
         flow_valid = float(out["flow_valid"].mean())
     if "point_cloud" in out:
         from ..render.raycast import write_point_cloud
@@ -402,7 +392,7 @@ def _render_frame(state: dict, i: int) -> dict:
             out = {k: (v[keep] if k.startswith("point_cloud") else v) for k, v in out.items()}
         put(write_point_cloud, seq / "point_clouds" / f"{name}.ply", out, i, poses[src[i]])
     if "segmentation" in out:
-        put(write_png16, seq / "segmentation" / f"{name}.png", (out["segmentation"] + 1).astype(np.uint16), lvl)
+        put(st.write_segmentation, seq / "segmentation" / f"{name}.png", out["segmentation"])
     return {"rec": rec, "hit": float(hit.mean()), "flow_valid": flow_valid, "pid": os.getpid(),
             "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
 
