@@ -251,7 +251,8 @@ def test_cli_unknown_target_is_one_error_line(tmp_path):
 
 
 def test_cli_demo_refuses_a_folder_without_rendered_frames(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "navigate", "demo", str(tmp_path), "--frames", "0"],
+    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "navigate", "demo", str(tmp_path), "--frames", "0",
+                        "--out", str(tmp_path / "navigation_demo")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.startswith("room: error: ") and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "navigation_demo").exists()

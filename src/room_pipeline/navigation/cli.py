@@ -1,9 +1,8 @@
 """``room navigate``: the paper's navigation demonstration and closed-loop episodes.
 
-    room navigate demo SEQUENCE_DIR [--frames 0,100] [--depth gt|METHOD] [--stride N] [--out DIR] [overrides]
+    room navigate demo SEQUENCE_DIR --out DIR [--frames 0,100] [--depth gt|METHOD] [--stride N] [overrides]
         Plan from the depth of chosen frames of a rendered sequence (:mod:`.demo`); METHOD is any name of
-        the depth registry (``depth.methods``), median-scaled to the ground truth.  Default --out:
-        SEQUENCE_DIR/navigation_demo/.
+        the depth registry (``depth.methods``), median-scaled to the ground truth.
     room navigate episode --output-dir DIR --patient ID --target BRANCH [--policy depth|darkest|oracle]
                           [--out FILE.json] [overrides]
         One closed-loop episode (:mod:`.closed_loop`) on a patient whose anatomy stages have run.
@@ -82,14 +81,15 @@ def cmd_demo(args) -> int:
     if args.stride < 1:
         raise InputError(f"--stride must be >= 1, got {args.stride}")
     seq = Path(args.sequence)
-    out = Path(args.out) if args.out else seq / "navigation_demo"
+    out = Path(args.out)
     doc = run_demo(seq, _frames(args.frames), out, planner, args.depth, args.stride, _section(cfg, "depth"))
     for f in doc["frames"]:
         if f.get("plan") is None and f.get("goal") is None and "reason" in f:
             print(f"frame {f['frame']}: {f['reason']}")
             continue
         t = f["true_lumen"]
-        print(f"frame {f['frame']}: path {f['length_m'] * 1e3:.1f} mm, max curvature {f['max_curvature_per_m']:.1f} 1/m, "
+        print(f"frame {f['frame']}: goal at {f['goal_depth_m'] * 1e3:.1f} mm depth, path {f['length_m'] * 1e3:.1f} mm "
+              f"ending {f['end_to_goal_m'] * 1e3:.1f} mm from it, max curvature {f['max_curvature_per_m']:.1f} 1/m, "
               f"free vs cloud {f['collision_free_against_cloud']}, collides with the true lumen "
               f"{t['collides_with_true_lumen']} (min sphere clearance {t['min_sphere_clearance_mm']:.2f} mm)")
     print(f"wrote {out}")
@@ -136,8 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("sequence")
     d.add_argument("--frames", default="0")
     d.add_argument("--depth", default="gt", help="gt or a depth method of the registry (median-scaled to gt)")
-    d.add_argument("--stride", type=int, default=2, help="back-project every N-th row and column")
-    d.add_argument("--out")
+    d.add_argument("--stride", type=int, default=6, help="back-project every N-th row and column (600 px / 6: 10k points)")
+    d.add_argument("--out", required=True, help="output folder (not inside the DVC-tracked sequence folder)")
     d.set_defaults(func=cmd_demo)
     e = sub.add_parser("episode", help="one closed-loop episode")
     e.add_argument("--output-dir", required=True)

@@ -135,6 +135,7 @@ def run_demo(seq_dir: Path, frames: list[int], out_dir: Path, params: PlannerPar
             "tangents_world": np.round(r["world_tangents"], 7).tolist(),
             "length_m": pl.length, "max_curvature_per_m": pl.max_curvature(), "kappa_max_per_m": params.kappa_max,
             "min_clearance_to_cloud_m": float(pl.clearance.min()),
+            "end_to_goal_m": float(np.linalg.norm(pl.points[-1] - goal.point)),
             "collision_free_against_cloud": pl.collision_free,
             "true_lumen": r["true_lumen"],
         })
