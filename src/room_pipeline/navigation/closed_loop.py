@@ -8,12 +8,16 @@ Episode (one patient, one target branch of the centreline graph)
     branch that ends in a bifurcation on the way to the target, the operator's command for it: the word
     "left" / "right" / "up" / "down" (the image direction from the wrong child's opening to the right
     one, computed from the graph and the true pose, as an operator watching the screen would say it).
-    It returns a target tip pose; the IK controller (:class:`~room_pipeline.robot.controller.IKController`)
-    turns it into a command ``q = (q1, q2, q3)`` (tendon differential m, roll rad, insertion m), rate-limited
-    (the simulate config's actuator rates; insertion at most ``speed_mm_s``), sent through the actuator model
-    (:class:`~room_pipeline.robot.actuation.Actuator`: the paper's delay ~ U(0, delay_max_s) drawn once per
-    episode from ``seed``, and gains), and PyBullet (:class:`~room_pipeline.robot.pybullet_sim.ScopeSim`, the
-    simulate config's scope, contact and friction) integrates the control period against the decimated
+    It returns a target tip position; :func:`reach_command` turns it into a command ``q = (q1, q2, q3)``
+    (tendon differential m, roll rad, insertion m): the insertion advances at ``speed_mm_s`` (``slow_factor``
+    of it while the plan is not collision-free) and the constant-curvature bend that would put the tip on the
+    target once the scope has gone ``lookahead_mm`` further is commanded (position-only tip control; the
+    simulate stage's pose IK stalled here: with the shaft on the tip's own path, its targets were out of
+    reach and its insertion stopped).  The command is rate-limited (the simulate config's actuator rates),
+    sent through the actuator model (:class:`~room_pipeline.robot.actuation.Actuator`: the paper's delay
+    ~ U(0, delay_max_s) drawn once per episode from ``seed``, and gains), and PyBullet
+    (:class:`~room_pipeline.robot.pybullet_sim.ScopeSim`, the simulate config's scope, contact and friction,
+    at ``physics_step_s``) integrates the control period against the decimated
     lumen (``collision_model.obj``).
 
 Shaft (follow-the-leader)
@@ -53,11 +57,10 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ..anatomy.centreline import CentrelineGraph
 from ..config.params import params_from_dict
-from ..errors import ConfigError, InputError
+from ..errors import ConfigError
 from ..io.mesh import Mesh
-from ..render.camera import CameraIntrinsics, look_at
+from ..render.camera import CameraIntrinsics
 from ..robot.actuation import Actuator, CommandSignal, sample_delay
 from ..robot.controller import _wrap, rate_limit, regularise_roll
 from ..robot.kinematics import ScopeGeometry
