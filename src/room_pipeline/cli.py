@@ -23,6 +23,8 @@
         Write the self-contained HTML report of a dataset (room_pipeline.report).
     room realism --real DIR [--synth DIR] [--json OUT]
         Realism statistics of rendered frames against real ones (room_pipeline.realism).
+    room navigate {demo,episode,targets} ...
+        Vision-based navigation: the paper's planning demonstration, closed-loop episodes (room_pipeline.navigation).
     `room TOOL --help` lists a tool's options.
 
 Bad input ends with one line on stderr ("room: error: ...") and exit status 2.
@@ -269,6 +271,7 @@ TOOLS = {
     "export": ("room_pipeline.export", "export a rendered sequence (COLMAP, nerfstudio, TUM, PLY point clouds)"),
     "report": ("room_pipeline.report.html", "write the self-contained HTML report of a dataset"),
     "realism": ("room_pipeline.realism", "image statistics of rendered frames against real bronchoscopy frames"),
+    "navigate": ("room_pipeline.navigation.cli", "navigation demo (depth -> point cloud -> planner) and closed-loop episodes"),
 }
 
 

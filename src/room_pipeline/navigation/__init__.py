@@ -1,0 +1,9 @@
+"""Vision-based navigation of the simulated scope (issue #19).
+
+perception.py   depth -> camera-frame point cloud, median scaling of a relative estimator to ground truth
+planner.py      the sampling-based local planner (constant-curvature arc chains, cross-entropy method)
+lumen.py        distances to the TRUE lumen surface (Open3D), for scoring plans and episodes
+demo.py         the paper's single-frame demonstration (`room navigate demo`)
+closed_loop.py  closed-loop episodes in the PyBullet simulator, policies and the oracle / darkest baselines
+cli.py          the `room navigate` tool
+"""

@@ -1,0 +1,412 @@
+"""Closed-loop navigation of the simulated scope from rendered images (issue #19).
+
+Episode (one patient, one target branch of the centreline graph)
+    The scope starts in the trachea (``start_offset_mm`` down the root branch, looking along it).  Every
+    control step (``1 / control_rate_hz`` s, default 0.1 s) the policy sees only the camera's image at the
+    *simulated* tip pose, rendered by the fast Open3D ray caster (:class:`~room_pipeline.render.raycast.
+    RaycastRenderer`, ``image_px`` square, the render config's field of view), and, while the tip is in a
+    branch that ends in a bifurcation on the way to the target, the operator's command for it: the word
+    "left" / "right" / "up" / "down" (the image direction from the wrong child's opening to the right
+    one, computed from the graph and the true pose, as an operator watching the screen would say it).
+    It returns a target tip position; :func:`reach_command` turns it into a command ``q = (q1, q2, q3)``
+    (tendon differential m, roll rad, insertion m): the insertion advances at ``speed_mm_s`` (``slow_factor``
+    of it while the plan is not collision-free) and the constant-curvature bend that would put the tip on the
+    target once the scope has gone ``lookahead_mm`` further is commanded (position-only tip control; the
+    simulate stage's pose IK stalled here: with the shaft on the tip's own path, its targets were out of
+    reach and its insertion stopped).  The command is rate-limited (the simulate config's actuator rates),
+    sent through the actuator model (:class:`~room_pipeline.robot.actuation.Actuator`: the paper's delay
+    ~ U(0, delay_max_s) drawn once per episode from ``seed``, and gains), and PyBullet
+    (:class:`~room_pipeline.robot.pybullet_sim.ScopeSim`, the simulate config's scope, contact and friction,
+    at ``physics_step_s``) integrates the control period against the decimated
+    lumen (``collision_model.obj``).
+
+Shaft (follow-the-leader)
+    The simulate stage constrains the shaft to the *planned* route; in closed loop there is none, so the
+    bending-segment base slides along the path the tip itself has traced (a rotation-minimising frame
+    along it; before the start, a straight line back out of the trachea): a continuum scope's shaft
+    follows where its tip went.  Honest limit: the shaft is kinematic, so contact forces act on the
+    bending segment only.
+
+Policies
+    ``depth``: depth map (ground truth: the ray caster's planar z; the upper bound of any estimator) ->
+    point cloud -> :func:`~room_pipeline.navigation.planner.choose_goal` (farthest free point, in the
+    region the command points to) -> :func:`~room_pipeline.navigation.planner.plan_path` -> the tip target
+    is the plan's point ``lookahead_mm`` ahead with its tangent.  ``darkest``: the naive baseline: the RGB
+    image (Lambertian tip-light shading, the render config's light), blurred; the darkest region (the
+    lumen is dark), chosen by the command when several; steer along the ray through its centroid.
+    ``oracle``: the centreline route of the graph to the target, the point ``lookahead_mm`` ahead of the
+    tip's nearest route point (uses the true pose and anatomy: the reference, not a vision policy).
+
+Outcome
+    ``reached`` when the tip's nearest centreline point is in the target branch at >= ``reach_fraction``
+    of its length; ``wrong_branch`` when it is ``wrong_branch_mm`` into a branch off the route;
+    ``stalled`` when the insertion gained < 1 mm over ``stall_time_s``; ``timeout`` at ``max_time_s``.
+    Reported: time (s), tip path length (mm), physics steps in contact, peak summed normal contact force
+    (N, every physics step), minimum distance from the scope's backbone to the TRUE lumen surface minus
+    the scope radius (mm, every control step), the deepest generation of the route reached, and CPU time
+    per control step split into render / plan / simulate (``time.process_time``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any, Mapping
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from ..config.params import params_from_dict
+from ..errors import ConfigError
+from ..io.mesh import Mesh
+from ..render.camera import CameraIntrinsics
+from ..robot.actuation import Actuator, CommandSignal, sample_delay
+from ..robot.controller import _wrap, rate_limit, regularise_roll
+from ..robot.kinematics import ScopeGeometry
+from ..robot.pybullet_sim import Route, ScopeSim, SimParams, _rz
+from .airways import COMMANDS, Airways, Patient, check_target, generation_targets, operator_command, start_pose  # noqa: F401
+from .lumen import TrueLumen
+from .perception import back_project
+from .planner import PlannerParams, choose_goal, plan_path
+
+MM = 1e-3
+POLICIES = ("depth", "darkest", "oracle")
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeParams:
+    """Closed-loop episode knobs (``navigate.episode``); lengths mm, speeds mm/s, times s."""
+
+    policy: str = "depth"
+    control_rate_hz: float = 10.0
+    max_time_s: float = 60.0
+    speed_mm_s: float = 5.0             # insertion speed limit (the trajectory stage's default advance speed)
+    image_px: int = 64                  # square image the policy sees (the planner sub-samples nothing more)
+    fov_deg: float = 85.0               # horizontal field of view (the render config's default)
+    lookahead_mm: float = 4.0           # tip target this far along the plan / route / dark ray
+    start_offset_mm: float = 60.0       # start this far down the trachea (>= the 50 mm bending segment)
+    reach_fraction: float = 0.5         # success: this far along the target branch
+    wrong_branch_mm: float = 5.0        # failure: this far into a branch off the route
+    stall_time_s: float = 8.0           # failure: < 1 mm of insertion gained over this long
+    physics_step_s: float = 0.005       # replaces simulate.time_step_s: 10 ms is unstable in pressed contact
+                                        # (README, Pitfalls: the pressed probe reads 19 N for 0.5 N); measured
+                                        # here: 10 ms tunnelled at a carina (57 N), 5 ms did not
+    slow_factor: float = 0.5            # insertion speed factor while the plan is not collision-free
+    dark_quantile: float = 0.05         # darkest: pixels at or below this luminance quantile form the dark regions
+    seed: int = 0                       # actuation delay draw (and the planner's samples: planner.seed + step)
+
+    def __post_init__(self) -> None:
+        if self.policy not in POLICIES:
+            raise ConfigError(f"navigate.episode.policy must be one of {POLICIES}, got {self.policy!r}")
+        for name in ("control_rate_hz", "max_time_s", "speed_mm_s", "fov_deg", "lookahead_mm", "start_offset_mm",
+                     "wrong_branch_mm", "stall_time_s", "physics_step_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"navigate.episode.{name} must be > 0, got {v!r}")
+        if self.image_px < 8:
+            raise ConfigError("navigate.episode.image_px must be >= 8")
+        if not 0 < self.reach_fraction <= 1 or not 0 < self.dark_quantile < 1:
+            raise ConfigError("navigate.episode.reach_fraction must be in (0, 1], dark_quantile in (0, 1)")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> "EpisodeParams":
+        return params_from_dict(cls, d, "navigate.episode")
+
+
+# --------------------------------------------------------------------------- the shaft's path
+
+
+class Trace:
+    """Follow-the-leader path of the shaft: points every >= 1 mm with a rotation-minimising frame."""
+
+    def __init__(self, pose: np.ndarray, back_m: float = 0.2, step: float = 1e-3) -> None:
+        z = pose[:3, 2]
+        x = pose[:3, 0]
+        n = int(round(back_m / step))
+        self.P = [pose[:3, 3] - (n - k) * step * z for k in range(n + 1)]
+        self.X = [x.copy() for _ in range(n + 1)]
+        self.step = step
+        self.s_end = n * step
+        self._route: Route | None = None
+
+    def extend(self, p: np.ndarray) -> None:
+        d = np.linalg.norm(p - self.P[-1])
+        if d < self.step:
+            return
+        t = (p - self.P[-1]) / d
+        x = self.X[-1] - (self.X[-1] @ t) * t
+        nx = np.linalg.norm(x)
+        if nx < 1e-6:
+            return
+        self.P.append(p.copy())
+        self.X.append(x / nx)
+        self.s_end += d
+        self._route = None
+
+    @property
+    def route(self) -> Route:
+        if self._route is None:
+            P = np.array(self.P)
+            X = np.array(self.X)
+            s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+            R = np.zeros((len(P), 3, 3))
+            R[:, :, 0] = X
+            self._route = Route(P, s, R)
+        return self._route
+
+
+# --------------------------------------------------------------------------- the episode
+
+
+class _Eyes:
+    """The policy's camera: depth (and RGB for the darkest policy) at any pose, fast ray caster."""
+
+    def __init__(self, mesh: Mesh, camera: CameraIntrinsics, rgb: bool, light=None, material=None) -> None:
+        from ..render.raycast import RaycastConfig, RaycastRenderer
+        from ..render.scene import Film, Scene, TipLight, TissueMaterial
+
+        self.camera = camera
+        kw = {}
+        if rgb:
+            kw = dict(light=light or TipLight(), material=material or TissueMaterial(), film=Film(exposure_ev=0.0))
+        self.scene = Scene(mesh, camera, np.eye(4)[None], np.zeros(1), **kw)
+        self.r = RaycastRenderer(self.scene, RaycastConfig(per_pixel_texture=False))
+        vv, uu = np.mgrid[0:camera.height, 0:camera.width]
+        self.uv = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)
+
+    def depth(self, pose: np.ndarray) -> np.ndarray:
+        d, hit = self.r.depth_at(pose, self.uv)
+        return np.where(hit, d, 0.0).reshape(self.camera.height, self.camera.width)
+
+    def luminance(self, pose: np.ndarray) -> np.ndarray:
+        self.scene.poses[0] = pose
+        self.r._cache.clear()                 # one reusable frame slot: a new pose each call
+        out = self.r.render(0, {"rgb"})
+        lin = out["rgb_linear"].astype(np.float64)
+        lum = 0.2126 * lin[..., 0] + 0.7152 * lin[..., 1] + 0.0722 * lin[..., 2]
+        return np.where(out["hit"], lum, 0.0)  # no hit (beyond the far plane) is the darkest
+
+
+def reach_command(target_world: np.ndarray, base_frame, q_prev: np.ndarray, geometry: ScopeGeometry,
+                  advance_m: float, hold_fraction: float = 0.05, free_fraction: float = 0.15,
+                  preview_m: float = 0.0) -> np.ndarray:
+    """Joint command inserting ``advance_m`` more and bending the tip as near ``target_world`` as it can get
+    once the insertion has gone ``preview_m`` further (the bend that will have brought the tip there).
+
+    ``base_frame(q3)``: world pose of the bending-segment base at insertion ``q3`` (roll 0; z = insertion).
+    At the new insertion the constant-curvature tip lies at ``Rot_z(q2) [0, -l (1 - cos t)/t, l sin t / t]``
+    (``t = theta = -q1 / (2 gamma)``; :mod:`room_pipeline.robot.kinematics`) in that frame: ``q2`` puts the
+    bending plane through the target (``atan2(x, -y)``), ``theta`` (grid over ``[0, theta_max]``, 0.5 mrad)
+    minimises the distance to it.  Near zero bending the roll is held (:func:`~room_pipeline.robot.controller.
+    regularise_roll`, the simulate config's fractions).  Insertion is commanded, the bend follows the target:
+    the position-only tip control of a follow-the-leader scope.
+    """
+    q3 = float(q_prev[2]) + advance_m
+    B = base_frame(float(q_prev[2]) + max(advance_m, preview_m))
+    t = B[:3, :3].T @ (np.asarray(target_world, float) - B[:3, 3])
+    r, z = math.hypot(t[0], t[1]), float(t[2])
+    l = geometry.l
+    th = _THETA_GRID * geometry.theta_max
+    lat = l * np.where(th > 1e-9, (1 - np.cos(th)) / np.maximum(th, 1e-12), 0.0)
+    ax = l * np.where(th > 1e-9, np.sin(th) / np.maximum(th, 1e-12), 1.0)
+    theta = float(th[np.argmin((lat - r) ** 2 + (ax - z) ** 2)])
+    q2 = float(q_prev[1]) + _wrap(math.atan2(t[0], -t[1]) - float(q_prev[1])) if r > 1e-9 else float(q_prev[1])
+    q = np.array([-2.0 * geometry.gamma * theta, q2, q3])
+    q[0] = max(-geometry.q1_max, min(geometry.q1_max, q[0]))
+    if hold_fraction > 0 or free_fraction > 0:
+        q = regularise_roll(q, float(q_prev[1]), geometry.q1_max, hold_fraction, free_fraction, project=False)
+    return q
+
+
+_THETA_GRID = np.linspace(0.0, 1.0, 2001)
+
+
+def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: PlannerParams,
+                sim_params: SimParams, geometry: ScopeGeometry | None = None, record_frames: bool = False
+                ) -> dict:
+    """One closed-loop episode toward branch ``target``; returns the outcome and per-step log (see module doc)."""
+    check_target(patient.graph, target)
+    sim_params = dataclasses.replace(sim_params, time_step_s=params.physics_step_s)
+    geometry = geometry or ScopeGeometry()
+    planner = dataclasses.replace(planner, kappa_max=min(planner.kappa_max, geometry.kappa_max),
+                                  scope_radius_mm=sim_params.scope_diameter_mm / 2)
+    airways = Airways(patient.graph)
+    route_ids = airways.route(target)
+    route_P, route_s = airways.route_polyline(target)
+    route_tree = cKDTree(route_P)
+    lumen = TrueLumen(patient.mesh)
+    cam = CameraIntrinsics.from_fov(params.image_px, params.image_px, params.fov_deg, 1e-4, 0.5)
+    eyes = _Eyes(patient.mesh, cam, rgb=params.policy == "darkest")
+
+    pose0 = start_pose(patient.graph, params.start_offset_mm * MM)
+    trace = Trace(pose0)
+    sim = ScopeSim(sim_params, geometry)
+    try:
+        sim.set_wall(patient.collision.vertices, patient.collision.faces)
+        rng = np.random.default_rng(params.seed)
+        delay = sample_delay(rng, sim_params.delay_max_s) if sim_params.actuation else 0.0
+        signal = CommandSignal()
+        act = Actuator(signal, delay, geometry.q1_max, sim_params.gain_q1, sim_params.gain_q2,
+                       enabled=sim_params.actuation)
+        max_rate = np.array([sim_params.max_rate_q1_mm_s * MM, math.radians(sim_params.max_rate_q2_deg_s),
+                             min(sim_params.max_rate_q3_mm_s, params.speed_mm_s) * MM])
+        ctrl_dt = 1.0 / params.control_rate_hz
+        n_sub = max(1, int(round(ctrl_dt / sim_params.time_step_s)))
+        h = ctrl_dt / n_sub
+
+        def apply(q, hh=0.0, reset=True):
+            base = trace.route.frame(q[2])
+            base[:3, :3] = base[:3, :3] @ _rz(q[1])
+            prev = sim.base_pose if (sim_params.insertion_by_velocity and hh > 0.0) else None
+            sim.set_base(base, prev, hh, reset=reset)
+            sim.set_bend(q[0])
+
+        q = np.array([0.0, 0.0, trace.s_end - geometry.l])
+        signal.add(0.0, q)
+        apply(act(0.0))
+        sim.reset_joints()
+        sim.step(int(round(sim_params.settle_time_s / sim_params.time_step_s)))
+
+        t = 0.0
+        log: list[dict] = []
+        peak_force, contact_steps, steps = 0.0, 0, 0
+        min_clear = math.inf
+        gen_reached = patient.graph.root.generation
+        cpu = {"render": 0.0, "plan": 0.0, "simulate": 0.0}
+        q3_hist = [(0.0, q[2])]
+        outcome = "timeout"
+        tip_prev = None
+        path_len = 0.0
+        frames = []
+        k = 0
+        while t < params.max_time_s - 1e-9:
+            tip = sim.tip_pose()
+            if not np.all(np.isfinite(tip)):
+                outcome = "diverged"
+                break
+            p_tip = tip[:3, 3]
+            if tip_prev is not None:
+                path_len += float(np.linalg.norm(p_tip - tip_prev))
+            tip_prev = p_tip.copy()
+            trace.extend(p_tip)
+            sd = lumen.signed_distance(sim.sample_points())
+            min_clear = min(min_clear, float((-sd).min()) - sim.radius)
+            branch, s_in = airways.locate(p_tip)
+            if branch in route_ids:
+                gen_reached = max(gen_reached, patient.graph.branch(branch).generation)
+            if branch == target and s_in >= params.reach_fraction * airways.cum[target][-1]:
+                outcome = "reached"
+                break
+            if branch not in route_ids and s_in >= params.wrong_branch_mm * MM:
+                outcome = "wrong_branch"
+                break
+            if t >= params.stall_time_s:
+                old = [qq for tt, qq in q3_hist if tt <= t - params.stall_time_s]
+                if old and q[2] - old[-1] < 1 * MM:
+                    outcome = "stalled"
+                    break
+            word = operator_command(airways, target, branch, tip, cam)
+            c0 = time.process_time()
+            info: dict[str, Any] = {"t": round(t, 6), "branch": branch, "command": word}
+            if params.policy == "oracle":
+                _, i = route_tree.query(p_tip)
+                s_goal = route_s[i] + params.lookahead_mm * MM
+                j = int(min(len(route_s) - 2, np.searchsorted(route_s, s_goal)))
+                tgt = route_P[j]
+                tan = route_P[j + 1] - route_P[j]
+                c1 = time.process_time()
+            elif params.policy == "depth":
+                depth = eyes.depth(tip)
+                c1 = time.process_time()
+                cloud = back_project(depth, cam, 1)
+                tree = cKDTree(cloud.points) if len(cloud.points) else None
+                goal = choose_goal(cloud, planner, COMMANDS.get(word) if word else None, tree) if tree else None
+                if goal is None:
+                    tgt, tan = p_tip, tip[:3, 2]
+                    info["plan"] = None
+                else:
+                    pl = plan_path(cloud, goal.point, dataclasses.replace(planner, seed=planner.seed + k), tree)
+                    pc, tc = pl.at(params.lookahead_mm * MM)
+                    tgt = tip[:3, :3] @ pc + p_tip
+                    tan = tip[:3, :3] @ tc
+                    info["plan"] = {"free": pl.collision_free, "length_mm": round(pl.length * 1e3, 3),
+                                    "goal_depth_mm": round(goal.depth * 1e3, 3), "regions": goal.regions}
+                    if record_frames:
+                        frames.append({"depth": depth, "plan": pl, "pose": tip.copy(), "goal": goal})
+            else:
+                lum = eyes.luminance(tip)
+                c1 = time.process_time()
+                ray = _darkest_ray(lum, cam, params.dark_quantile, COMMANDS.get(word) if word else None)
+                tan = tip[:3, :3] @ ray
+                tgt = p_tip + params.lookahead_mm * MM * tan
+            tan = tan / np.linalg.norm(tan)
+            q_prev = signal(t)
+            # push at the insertion speed, bend the tip toward the target
+            speed = params.speed_mm_s * MM * (1.0 if info.get("plan", {}) is None or
+                                              (info.get("plan") or {}).get("free", True) else params.slow_factor)
+            q_new = reach_command(tgt, trace.route.frame, q_prev, geometry, speed * ctrl_dt,
+                                  sim_params.roll_hold_q1_fraction, sim_params.roll_free_q1_fraction,
+                                  preview_m=params.lookahead_mm * MM)
+            q = rate_limit(q_new, q_prev, ctrl_dt, max_rate)
+            c2 = time.process_time()
+            signal.add(t + ctrl_dt, q)
+            sim.update_friction()
+            for j in range(n_sub):
+                tj = t + (j + 1) * h
+                apply(act(tj), h, reset=(j == 0))
+                sim.step(1)
+                f, _ = sim.contacts()
+                peak_force = max(peak_force, f)
+                contact_steps += int(f > 0)
+                steps += 1
+            c3 = time.process_time()
+            cpu["render"] += c1 - c0
+            cpu["plan"] += c2 - c1
+            cpu["simulate"] += c3 - c2
+            info["cpu_s"] = round(c3 - c0, 5)
+            info["q_cmd"] = [round(float(x), 7) for x in q]
+            info["force_n"] = round(f, 5)
+            info["wall_clearance_mm"] = round((float((-sd).min()) - sim.radius) * 1e3, 3)
+            log.append(info)
+            t += ctrl_dt
+            k += 1
+            q3_hist.append((t, q[2]))
+        n = max(1, len(log))
+        result = {
+            "patient": patient.name, "target": int(target), "target_generation": patient.graph.branch(target).generation,
+            "policy": params.policy, "outcome": outcome, "success": outcome == "reached",
+            "time_s": round(t, 6), "path_length_mm": path_len * 1e3,
+            "contact_steps": contact_steps, "physics_steps": steps, "peak_contact_force_n": peak_force,
+            "min_wall_clearance_mm": min_clear * 1e3, "generation_reached": int(gen_reached),
+            "actuation_delay_s": delay, "control_steps": len(log),
+            "cpu_per_step_s": {kk: v / n for kk, v in cpu.items()} | {"total": sum(cpu.values()) / n},
+            "log": log,
+        }
+        if record_frames:
+            result["frames"] = frames
+        return result
+    finally:
+        sim.close()
+
+
+def _darkest_ray(lum: np.ndarray, cam: CameraIntrinsics, quantile: float, command) -> np.ndarray:
+    """Unit camera-frame ray through the centroid of the darkest region (the one the command points to)."""
+    L = ndimage.gaussian_filter(lum, sigma=max(1.0, cam.width / 32))
+    thr = np.quantile(L, quantile)
+    mask = L <= thr
+    labels, n = ndimage.label(mask)
+    if n == 0:
+        u, v = cam.cx, cam.cy
+    else:
+        sizes = np.bincount(labels.ravel(), minlength=n + 1)
+        regions = [kk for kk in range(1, n + 1) if sizes[kk] >= 3] or [int(np.argmax(sizes[1:]) + 1)]
+        cents = np.array([np.argwhere(labels == kk).mean(axis=0)[::-1] for kk in regions])   # (u, v)
+        if command is not None and len(regions) > 1:
+            pick = int(np.argmax((cents - cents.mean(axis=0)) @ np.asarray(command, float)))
+        else:
+            means = [L[labels == kk].mean() for kk in regions]
+            pick = int(np.argmin(means))
+        u, v = cents[pick]
+    ray = np.array([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0])
+    return ray / np.linalg.norm(ray)

@@ -1,0 +1,277 @@
+"""Vision-based navigation (issue #19): perception, planner, true-lumen check, control, CLI errors, episodes.
+
+Geometry: closed tubes built here (straight and bent; real meshes rendered by the real ray caster), so the
+fast tests need no pipeline output; the phantom episode is `slow`.
+"""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from room_pipeline.anatomy.centreline import CentrelineGraph, GraphBranch
+from room_pipeline.errors import ConfigError, InputError
+from room_pipeline.io.mesh import Mesh, write_obj
+from room_pipeline.navigation.closed_loop import (EpisodeParams, Patient, check_target, operator_command,
+                                                  reach_command, run_episode, start_pose, Airways)
+from room_pipeline.navigation.lumen import TrueLumen
+from room_pipeline.navigation.perception import back_project, median_scale
+from room_pipeline.navigation.planner import PlannerParams, choose_goal, plan_path
+from room_pipeline.render.camera import CameraIntrinsics
+from room_pipeline.robot.kinematics import ScopeGeometry, fk
+from room_pipeline.robot.pybullet_sim import SimParams
+
+KMAX = ScopeGeometry().kappa_max
+
+
+def tube(radius=0.005, bend_radius=None, angle=0.0, straight=0.08, n_ring=32, step=0.001):
+    """Closed tube along +z (then bending toward +x on a circle of ``bend_radius``), end caps included."""
+    arc = (bend_radius or 0.0) * angle
+    s = np.arange(0.0, straight + arc + 1e-12, step)
+    C, T = [], []
+    for si in s:
+        if si <= straight or not bend_radius:
+            C.append([0.0, 0.0, si])
+            T.append([0.0, 0.0, 1.0])
+        else:
+            a = (si - straight) / bend_radius
+            C.append([bend_radius * (1 - math.cos(a)), 0.0, straight + bend_radius * math.sin(a)])
+            T.append([math.sin(a), 0.0, math.cos(a)])
+    C, T = np.array(C), np.array(T)
+    th = np.linspace(0, 2 * np.pi, n_ring, endpoint=False)
+    V = []
+    for c, t in zip(C, T):
+        n1 = np.array([0.0, 1.0, 0.0])
+        n2 = np.cross(t, n1)
+        V += [c + radius * (math.cos(a) * n1 + math.sin(a) * n2) for a in th]
+    n = len(C)
+    F = []
+    for i in range(n - 1):
+        for j in range(n_ring):
+            a, b = i * n_ring + j, i * n_ring + (j + 1) % n_ring
+            F += [[a, b, a + n_ring], [b, b + n_ring, a + n_ring]]
+    c0, c1 = len(V), len(V) + 1
+    V += [C[0], C[-1]]
+    for j in range(n_ring):
+        F.append([c0, (j + 1) % n_ring, j])
+        F.append([c1, (n - 1) * n_ring + j, (n - 1) * n_ring + (j + 1) % n_ring])
+    return Mesh(np.array(V), np.array(F)), C
+
+
+def render_depth(mesh, pose, px=64):
+    from room_pipeline.render.raycast import RaycastRenderer
+    from room_pipeline.render.scene import Scene
+
+    cam = CameraIntrinsics.from_fov(px, px, 85.0)
+    r = RaycastRenderer(Scene(mesh, cam, pose[None], np.zeros(1)))
+    return r.render(0, {"depth"})["depth"], cam
+
+
+def pose_at(z):
+    P = np.eye(4)
+    P[2, 3] = z
+    return P
+
+
+# ----------------------------------------------------------------------------- perception
+
+
+def test_back_project_reprojects_onto_the_depth_map():
+    cam = CameraIntrinsics.from_fov(40, 30, 80.0)
+    rng = np.random.default_rng(0)
+    d = rng.uniform(0.01, 0.05, (30, 40))
+    d[3, 4] = 0.0
+    d[5, 6] = np.nan
+    cl = back_project(d, cam, 1)
+    assert len(cl.points) == 40 * 30 - 2
+    uv = cam.project(cl.points)
+    assert np.allclose(uv, cl.pixels, atol=1e-9)
+    assert np.allclose(cl.points[:, 2], d[cl.pixels[:, 1].astype(int), cl.pixels[:, 0].astype(int)])
+    assert len(back_project(d, cam, 3).points) < len(cl.points)
+    with pytest.raises(InputError, match="depth map"):
+        back_project(d[:, :10], cam)
+
+
+def test_median_scale_recovers_the_scale_and_refuses_empty_overlap():
+    gt = np.linspace(0.01, 0.08, 100).reshape(10, 10)
+    scaled, s = median_scale(gt * 7.0, gt)
+    assert s == pytest.approx(1 / 7.0)
+    assert np.allclose(scaled, gt)
+    with pytest.raises(InputError, match="median-scale"):
+        median_scale(np.zeros((10, 10)), gt)
+
+
+# ----------------------------------------------------------------------------- planner
+
+
+def test_straight_tube_plan_is_straight_free_and_inside_the_true_lumen():
+    mesh, _ = tube(straight=0.12)
+    pose = pose_at(0.01)
+    depth, cam = render_depth(mesh, pose)
+    cl = back_project(depth, cam, 1)
+    p = PlannerParams()
+    goal = choose_goal(cl, p)
+    assert goal is not None and goal.depth > 0.05                       # far down the tube
+    assert math.hypot(goal.point[0], goal.point[1]) < 2.5e-3             # near its axis
+    plan = plan_path(cl, goal.point, p)
+    assert plan.collision_free
+    assert plan.max_curvature() <= p.kappa_max + 1e-9
+    assert np.abs(plan.points[:, :2]).max() < 2.5e-3                   # zero curvature case: stays near the axis
+    w, _ = plan.to_world(pose)
+    rep = TrueLumen(mesh).path_report(w, p.scope_radius_mm * 1e-3)
+    assert not rep["collides_with_true_lumen"] and rep["min_sphere_clearance_mm"] > 0
+
+
+def test_bent_tube_plan_turns_with_the_lumen_within_the_curvature_limit():
+    mesh, _ = tube(radius=0.005, bend_radius=0.04, angle=1.0, straight=0.03)
+    pose = pose_at(0.005)
+    depth, cam = render_depth(mesh, pose)
+    cl = back_project(depth, cam, 1)
+    p = PlannerParams()
+    goal = choose_goal(cl, p)
+    assert goal.point[0] > 0.001                                         # the lumen turns toward +x
+    plan = plan_path(cl, goal.point, p)
+    assert plan.collision_free
+    assert plan.points[-1, 0] > 0.001
+    assert plan.max_curvature() <= p.kappa_max + 1e-9
+    rep = TrueLumen(mesh).path_report(plan.to_world(pose)[0], p.scope_radius_mm * 1e-3)
+    assert not rep["collides_with_true_lumen"]
+
+
+def test_plan_is_deterministic_for_a_seed():
+    mesh, _ = tube(radius=0.005, bend_radius=0.04, angle=1.0, straight=0.03)
+    depth, cam = render_depth(mesh, pose_at(0.005))
+    cl = back_project(depth, cam, 1)
+    p = PlannerParams(seed=3)
+    goal = choose_goal(cl, p)
+    a, b = plan_path(cl, goal.point, p), plan_path(cl, goal.point, p)
+    assert a.points.tobytes() == b.points.tobytes()
+
+
+def test_a_wall_across_the_way_makes_the_plan_collide():
+    cam = CameraIntrinsics.from_fov(48, 48, 85.0)
+    depth = np.full((48, 48), 0.012)                                     # a flat wall 12 mm ahead
+    cl = back_project(depth, cam, 1)
+    plan = plan_path(cl, np.array([0.0, 0.0, 0.03]), PlannerParams())   # a goal behind it
+    assert not plan.collision_free
+    assert plan.behind_surface.max() > 0 or plan.clearance.min() < 2.5e-3
+
+
+def test_no_free_point_gives_no_goal():
+    cam = CameraIntrinsics.from_fov(32, 32, 85.0)
+    cl = back_project(np.full((32, 32), 0.002), cam, 1)                  # a wall 2 mm ahead: nothing fits a 2.5 mm sphere
+    assert choose_goal(cl, PlannerParams()) is None
+    assert choose_goal(back_project(np.zeros((32, 32)), cam, 1), PlannerParams()) is None
+
+
+def test_command_picks_the_opening_on_its_side():
+    cam = CameraIntrinsics.from_fov(64, 64, 85.0)
+    v, u = np.mgrid[0:64, 0:64]
+    depth = 0.012 + 0.045 * np.exp(-((u - 16) ** 2 + (v - 32) ** 2) / 40.0) \
+        + 0.040 * np.exp(-((u - 48) ** 2 + (v - 32) ** 2) / 40.0)      # two openings, the left one deeper
+    cl = back_project(depth, cam, 1)
+    p = PlannerParams()
+    assert choose_goal(cl, p).point[0] < 0                               # no command: the deepest (left)
+    g = choose_goal(cl, p, command=np.array([1.0, 0.0]))                 # "right"
+    assert g.point[0] > 0 and g.regions == 2
+    assert choose_goal(cl, p, command=np.array([-1.0, 0.0])).point[0] < 0
+
+
+def test_planner_params_refuse_bad_values():
+    with pytest.raises(ConfigError, match="kappa_max"):
+        PlannerParams(kappa_max=0.0)
+    with pytest.raises(ConfigError, match="unknown key"):
+        PlannerParams.from_dict({"radius": 1.0})
+    with pytest.raises(ConfigError, match="policy"):
+        EpisodeParams(policy="magic")
+
+
+# ----------------------------------------------------------------------------- control and graph
+
+
+def test_reach_command_puts_the_free_space_tip_on_a_reachable_target():
+    g = ScopeGeometry()
+    q_true = np.array([-0.003, 0.7, 0.0])
+    target = fk(q_true, geometry=g)[:3, 3]
+    q = reach_command(target, lambda q3: pose_at(q3), np.array([0.0, 0.0, 0.0]), g, 0.0, 0.0, 0.0)
+    assert np.linalg.norm(fk(q, geometry=g)[:3, 3] - target) < 1e-4
+    assert abs(q[0]) <= g.q1_max
+
+
+def two_branch_graph():
+    root = GraphBranch(0, -1, 0, np.array([[0, 0, z] for z in np.arange(0, 0.101, 0.001)]), np.full(101, 0.008))
+    left = GraphBranch(1, 0, 1, np.array([[-x, 0, 0.1 + x] for x in np.arange(0, 0.031, 0.001)]), np.full(31, 0.005))
+    right = GraphBranch(2, 0, 1, np.array([[x, 0, 0.1 + x] for x in np.arange(0, 0.031, 0.001)]), np.full(31, 0.005))
+    return CentrelineGraph([root, left, right])
+
+
+def test_unknown_or_root_target_is_an_input_error_and_commands_follow_the_image():
+    g = two_branch_graph()
+    with pytest.raises(InputError, match="not in the centreline graph"):
+        check_target(g, 99)
+    with pytest.raises(InputError, match="trachea"):
+        check_target(g, 0)
+    pose = start_pose(g, 0.06)
+    assert np.allclose(pose[:3, 2], [0, 0, 1])
+    cam = CameraIntrinsics.from_fov(64, 64, 85.0)
+    a = Airways(g)
+    right = operator_command(a, 2, 0, pose, cam)
+    left = operator_command(a, 1, 0, pose, cam)
+    assert {right, left} == {"left", "right"} and right != left
+    # image right (camera x) is world -x here (looking along +z with image up = +y, anterior): branch 2 (+x)
+    # is on the image's left
+    assert pose[0, 0] == pytest.approx(-1.0) and right == "left"
+    assert operator_command(a, 2, 2, pose, cam) is None
+
+
+def _write_patient(root, mesh, graph):
+    (root / "anatomy").mkdir(parents=True)
+    write_obj(root / "anatomy" / "lung_model.obj", mesh)
+    write_obj(root / "anatomy" / "collision_model.obj", mesh)
+    (root / "anatomy" / "centreline_graph.json").write_text(json.dumps(graph.to_dict()))
+
+
+def test_cli_unknown_target_is_one_error_line(tmp_path):
+    mesh, C = tube(straight=0.16)
+    root = GraphBranch(0, -1, 0, C[:101], np.full(101, 0.005))
+    child = GraphBranch(1, 0, 1, C[100:], np.full(len(C) - 100, 0.005))
+    _write_patient(tmp_path / "p", mesh, CentrelineGraph([root, child]))
+    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "navigate", "episode", "--output-dir", str(tmp_path),
+                        "--patient", "p", "--target", "7"], capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and r.stderr.startswith("room: error: ")
+    assert "target branch 7" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "navigate", "episode", "--output-dir", str(tmp_path),
+                        "--patient", "nobody", "--target", "1"], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.startswith("room: error: ") and "missing" in r.stderr
+
+
+def test_cli_demo_refuses_a_folder_without_rendered_frames(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "navigate", "demo", str(tmp_path), "--frames", "0",
+                        "--out", str(tmp_path / "navigation_demo")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.startswith("room: error: ") and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "navigation_demo").exists()
+
+
+# ----------------------------------------------------------------------------- episodes
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("policy", ["depth", "oracle"])
+def test_episode_in_a_straight_tube_reaches_the_target_without_contact(policy):
+    mesh, C = tube(radius=0.006, straight=0.18)
+    root = GraphBranch(0, -1, 0, C[:111], np.full(111, 0.006))
+    child = GraphBranch(1, 0, 1, C[110:], np.full(len(C) - 110, 0.006))
+    pat = Patient("tube", mesh, mesh, CentrelineGraph([root, child]))
+    res = run_episode(pat, 1, EpisodeParams(policy=policy, max_time_s=30.0), PlannerParams(), SimParams())
+    assert res["outcome"] == "reached", res["outcome"]
+    assert res["peak_contact_force_n"] <= 0.5
+    assert res["min_wall_clearance_mm"] > 0
+    assert res["generation_reached"] == 1
+    again = run_episode(pat, 1, EpisodeParams(policy=policy, max_time_s=30.0), PlannerParams(), SimParams())
+    assert again["time_s"] == res["time_s"] and again["path_length_mm"] == res["path_length_mm"]
