@@ -21,6 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from room_pipeline.io.metrics import read_metrics_file
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 DEFAULT = ROOT.parent / "shared/data/airway_masks/public_trees/axes_fixed/ATM_001_0000_fixed.nii.gz"
@@ -46,7 +48,7 @@ def main() -> None:
         wall = time.perf_counter() - t0
         rows = []
         for st in stages:
-            m = json.loads((Path(tmp) / "bench" / "metrics" / f"{st}.json").read_text())
+            m = read_metrics_file(Path(tmp) / "bench" / "metrics" / f"{st}.json")   # + its timing file
             rows.append({"stage": st, "wall_s": m.get("wall_time_s"), "peak_rss_mb": m.get("peak_rss_mb")})
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     load = os.getloadavg()[0]

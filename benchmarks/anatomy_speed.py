@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from room_pipeline.io.metrics import read_metrics_file
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 CHAIN = ("segment", "sdf", "mesh")          # the anatomy chain proper
@@ -39,7 +41,7 @@ def run_case(out: Path, overrides: list[str]) -> dict:
     row = {"shape": meta["shape"], "voxels": int(np.prod(meta["shape"])),
            "spacing_mm": [round(s * 1e3, 4) for s in meta["spacing_m"]], "total_wall_s_incl_startup": round(wall, 2)}
     for st in ALL:
-        m = json.loads((pdir / "metrics" / f"{st}.json").read_text())
+        m = read_metrics_file(pdir / "metrics" / f"{st}.json")   # + its timing file
         row[f"{st}_s"] = m["wall_time_s"]
         row[f"{st}_peak_mb"] = m["peak_rss_mb"]
     row["chain_s"] = round(sum(row[f"{st}_s"] for st in CHAIN), 3)

@@ -286,13 +286,14 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         res["hf_speed"] = hf_architecture_speed(seq, Path(tmp))
 
+    from room_pipeline.io.metrics import read_metrics_file
     from room_pipeline.stages import train_depth
 
     cfg = config(data, masks)
     t0 = time.perf_counter()
     train_depth.run(cfg, "patient_000")
     wall = time.perf_counter() - t0
-    doc = json.loads((data / "patient_000" / "metrics" / "train_depth.json").read_text())
+    doc = read_metrics_file(data / "patient_000" / "metrics" / "train_depth.json")   # + times_s
     res["train"] = {"wall_s": wall, **doc}
     import csv
 

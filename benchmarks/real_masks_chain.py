@@ -18,6 +18,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from room_pipeline.io.metrics import read_metrics_file
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "airway_masks"
 RESULTS = ROOT / "benchmarks" / "results"
@@ -48,7 +50,7 @@ def run_one(name: str, mask: Path, start: Path | None) -> dict:
         for st in STAGES:
             f = mdir / f"{st}.json"
             if f.exists():
-                m = json.loads(f.read_text())
+                m = read_metrics_file(f)   # + its timing file
                 row[f"{st}_peak_mb"], row[f"{st}_s"] = m.get("peak_rss_mb"), m.get("wall_time_s")
                 if st == "medial_axis":
                     row["branches"] = m.get("n_branches")

@@ -122,10 +122,15 @@ def render() -> str:
         lines += [f"{ind}params:"] + [f"{ind}  - {p}" for p in params]
         plots = [o for o in outs if o.endswith("_errors.csv")]     # per-frame errors: DVC plots
         outs = [o for o in outs if o not in plots]
-        if outs:
+        # a stage's timings (room_pipeline.io.metrics): an uncached out, not a metric, so that
+        # `dvc exp show --only-changed` compares accuracy only
+        timing = [] if foreach == DATASET else [metrics[:-len(".json")] + ".timing.json"]
+        if outs or timing:
             lines += [f"{ind}outs:"]
             for o in outs:   # the dataset-level report tables belong in git, not the DVC cache
                 lines += [f"{ind}  - {o}:", f"{ind}      cache: false"] if foreach == DATASET else [f"{ind}  - {o}"]
+            for o in timing:
+                lines += [f"{ind}  - {o}:", f"{ind}      cache: false"]
         if plots:
             lines += [f"{ind}plots:"] + [x for o in plots for x in (f"{ind}  - {o}:", f"{ind}      x: frame",
                                                                       f"{ind}      cache: false")]

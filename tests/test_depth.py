@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
 from room_pipeline.depth import metrics as dm
+from room_pipeline.io.metrics import read_metrics_file
 from room_pipeline.depth.estimators import (DepthParams, Estimator, Frame, SequenceInfo, evaluate, sequence_samples,
                                             try_create)
 from room_pipeline.depth.physics import (LightModel, PhysicsParams, camera_cos, physics_depth, srgb8_to_linear)
@@ -439,7 +440,7 @@ def test_train_depth_stage_contract_and_evaluate_uses_it(tmp_path):
     cfg = depth_cfg(tmp_path, methods=["cnn", "cnn_pretrained"], **TINY)
     m = train_depth.run(cfg, "patient_000")
     assert m["available"]
-    doc = json.loads((tmp_path / "out" / "patient_000" / "metrics" / "train_depth.json").read_text())
+    doc = read_metrics_file(tmp_path / "out" / "patient_000" / "metrics" / "train_depth.json")   # + timings
     ev = json.loads((tmp_path / "out" / "evaluation" / "patient_000" / "depth_finetune.json").read_text())
     assert ev["datasets"] == doc["datasets"] and "times_s" not in json.dumps(ev)
     ds = doc["datasets"]

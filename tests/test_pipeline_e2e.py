@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from room_pipeline.io.metrics import split_timings
 from room_pipeline.stages import FAN_OUT, STAGES
 
 REPO = Path(__file__).resolve().parents[1]
@@ -89,6 +90,22 @@ def test_dvc_repro_caches_and_reruns_only_what_changed(project):
     assert "up to date" in status, status
     m = json.loads(_sh(["dvc", "metrics", "show", "--json"], project).stdout)
     assert m, "dvc metrics show returned nothing"
+    # the DVC metrics hold no timing (they sit in metrics/<stage>.timing.json, uncached outs), so a
+    # `dvc exp show --only-changed` compares accuracy only
+    shown = {}
+
+    def files(node):
+        for k, v in (node.items() if isinstance(node, dict) else ()):
+            if k.endswith(".json") and isinstance(v, dict) and isinstance(v.get("data"), dict):
+                shown[k] = v["data"]
+            else:
+                files(v)
+    files(m)
+    per_stage = {k: v for k, v in shown.items() if "/metrics/" in k}
+    assert per_stage and all(split_timings(v)[1] == {} for v in per_stage.values()), per_stage
+    timing_files = sorted((project / "data" / "output").rglob("*.timing.json"))
+    assert len(timing_files) == len(per_stage)
+    assert all("wall_time_s" in json.loads(f.read_text()) for f in timing_files if "train_depth" not in f.name)
 
     # a render parameter: exactly render and what is downstream of it (noise, evaluations, tables)
     _sh(["room", "params", *SMALL, "render.base_color=[0.7,0.5,0.54]"], project)   # changes every RGB byte

@@ -18,6 +18,7 @@ from room_pipeline.anatomy.centreline import CentrelineGraph, GraphBranch
 from room_pipeline.errors import InputError
 from room_pipeline.io.atomic import write_json, write_text
 from room_pipeline.io.mesh import write_obj
+from room_pipeline.io.metrics import is_timing_file, read_metrics_file, timing_path
 from room_pipeline.paths import PatientPaths
 from room_pipeline.report import SECTIONS, ReportOptions, build_report, main, write_report
 from room_pipeline.report import html as rh
@@ -189,8 +190,11 @@ def test_view3d_draws_what_exists_and_says_what_not(page):
 
 def test_metrics_table_lists_every_stage_file(page, dataset):
     s = section(page, "metrics")
-    for f in sorted((dataset / PATIENT / "metrics").glob("*.json")):
-        doc = json.loads(f.read_text())
+    files = [f for f in sorted((dataset / PATIENT / "metrics").glob("*.json")) if not is_timing_file(f)]
+    assert files and all(timing_path(f).is_file() for f in files)   # every stage writes its timings beside
+    for f in files:
+        doc = read_metrics_file(f)                                  # metrics + timings
+        assert "wall_time_s" not in json.loads(f.read_text())       # the DVC metric holds no timing
         assert f"<td>{f.stem}</td>" in s
         assert f"<td>{rh._fmt(doc['wall_time_s'])}</td>" in s
     assert "tracking_error_max_mm" in s and "<details>" in s and "total" in s

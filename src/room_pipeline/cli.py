@@ -61,7 +61,7 @@ def _validate(cfg, stage: str | None = None, key: str | None = None) -> None:
 
 
 def stage_output_paths(cfg, name: str, key: str) -> list[Path]:
-    """What stage ``name`` writes for ``key``: its declared outputs and its metrics file."""
+    """What stage ``name`` writes for ``key``: its declared outputs, its metrics file and timing file."""
     from . import stages
     from .paths import PatientPaths
 
@@ -70,7 +70,8 @@ def stage_output_paths(cfg, name: str, key: str) -> list[Path]:
     if fan != "dataset":
         patient, _, sequence = key.partition("/")
         metric = f"{name}_{sequence}" if sequence else name
-        outs.append(PatientPaths(Path(cfg.output_dir), patient).metrics(metric))
+        pp = PatientPaths(Path(cfg.output_dir), patient)
+        outs += [pp.metrics(metric), pp.timings(metric)]
     return outs
 
 

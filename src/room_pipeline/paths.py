@@ -10,7 +10,8 @@
     ``anatomy/medial_axis.ply``         medial points with radius, polyline edges
     ``anatomy/centreline_graph.json``   navigation tree (branches, parents, generations, radii)
     ``sequence_YYY/metadata/``          trajectory.json, timestamps.json, trajectory_tum.txt
-    ``metrics/<stage>.json``            per-stage DVC metrics
+    ``metrics/<stage>.json``            per-stage DVC metrics (accuracy)
+    ``metrics/<stage>.timing.json``     its timings (wall/CPU time, throughput, peak RSS; uncached DVC out)
 ``<output_dir>/evaluation/<patient>/<sequence>/``  pose / depth benchmark results (read by `tables`)
     ``sequence_YYY/...``                rendered sequences (later stages)
 """
@@ -134,3 +135,7 @@ class PatientPaths:
 
     def metrics(self, stage: str) -> Path:
         return self.metrics_dir / f"{stage}.json"
+
+    def timings(self, stage: str) -> Path:
+        """``metrics/<stage>.timing.json`` (see :mod:`room_pipeline.io.metrics`)."""
+        return self.metrics_dir / f"{stage}.timing.json"

@@ -18,8 +18,8 @@ Sections (``<section id=...>``, in this order, see :data:`SECTIONS`)
                     insertion ``q3`` (the simulator's ``kinematic`` insertion model), then the
                     constant-curvature bending segment; the caption gives, per drawn frame, the
                     distance between that model tip and the simulated tip pose.
-    ``metrics``     per patient, every ``metrics/*.json``: wall time, peak RSS, the headline
-                    numbers and (collapsed) every recorded value.
+    ``metrics``     per patient, every ``metrics/*.json`` merged with its ``*.timing.json``: wall time,
+                    peak RSS, the headline numbers and (collapsed) every recorded value.
     ``benchmarks``  speed-vs-error plots (matplotlib, Agg) from ``benchmarks/results/*.json`` and
                     the list of result files with their titles.
     ``tables``      the paper tables ``table_*.md`` (else ``table_*.csv``) of the `tables` stage.
@@ -50,6 +50,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from ..errors import ConfigError, InputError, RoomError
+from ..io.metrics import is_timing_file, merge_timings, timing_path
 
 #: (section id, heading), in page order
 SECTIONS: tuple[tuple[str, str], ...] = (
@@ -868,7 +869,7 @@ def section_metrics(opts: ReportOptions, patients: list[Path]) -> str:
     for p in patients:
         mdir = p / "metrics"
         out.append(f"<h3>{_esc(p.name)}</h3>")
-        files = sorted(mdir.glob("*.json")) if mdir.is_dir() else []
+        files = sorted(f for f in mdir.glob("*.json") if not is_timing_file(f)) if mdir.is_dir() else []
         if not files:
             out.append(_na(f"no {p.name}/metrics/*.json"))
             continue
@@ -878,6 +879,9 @@ def section_metrics(opts: ReportOptions, patients: list[Path]) -> str:
             if not isinstance(doc, Mapping):
                 rows.append([_esc(f.stem), "-", "-", _esc(f"not available: {why or 'not a JSON object'}"), ""])
                 continue
+            tim, _ = _read_json(timing_path(f))        # the stage's timings (absent in older outputs)
+            if isinstance(tim, Mapping):
+                doc = merge_timings(doc, {k: v for k, v in tim.items() if k != "units"})
             wt, rss = doc.get("wall_time_s"), doc.get("peak_rss_mb")
             if isinstance(wt, (int, float)) and not isinstance(wt, bool):
                 total += float(wt)

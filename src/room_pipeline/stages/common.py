@@ -14,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from .. import __version__
 from ..conventions import metadata_block
 from ..io.atomic import write_json
+from ..io.metrics import UNITS, split_timings, timing_path
 from ..paths import PatientPaths
 
 
@@ -82,8 +83,15 @@ def _finite(obj: Any) -> Any:
 
 
 def write_metrics(paths: PatientPaths, stage: str, metrics: dict) -> None:
-    """DVC metrics file ``metrics/<stage>.json`` (JSON numbers only, NaN -> null, atomically)."""
-    write_json(paths.metrics(stage), _finite(metrics))
+    """DVC metrics file ``metrics/<stage>.json`` and its timings ``metrics/<stage>.timing.json``.
+
+    The keys of :data:`room_pipeline.io.metrics.TIMING_KEYS` (wall/CPU times, throughput, peak memory; at any
+    dict depth) go to the timing file, so a DVC experiment compares accuracy only; JSON numbers only
+    (NaN -> null), each file written atomically (timings first: the metrics file marks a finished stage).
+    """
+    accuracy, timings = split_timings(_finite(metrics))
+    write_json(timing_path(paths.metrics(stage)), {**timings, "units": UNITS})
+    write_json(paths.metrics(stage), accuracy)
 
 
 def read_json(path: str | Path) -> Any:
