@@ -302,6 +302,9 @@ class CyclesRenderer:
         cam = bpy.data.objects.new("scope", cd)
         bs.collection.objects.link(cam)
         bs.camera = cam
+        if sc.camera.has_distortion:   # Cycles' perspective camera is an ideal pinhole
+            raise ConfigError(f"camera distortion {list(sc.camera.distortion)}: Cycles renders an ideal pinhole "
+                              "image only (render.backend=raycast renders the lens distortion)")
         ci = blender_camera_intrinsics(sc.camera)
         for k in ("sensor_fit", "sensor_width", "lens", "shift_x", "shift_y", "clip_start", "clip_end"):
             setattr(cd, k, ci[k])

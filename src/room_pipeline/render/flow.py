@@ -4,7 +4,8 @@ Definitions (OpenCV camera, pixel (u, v) = (column, row), centre of the
 top-left pixel at (0, 0); poses camera-to-world):
 
 * The surface point seen at pixel ``p = (u, v)`` of frame ``t`` is
-  ``X_t = depth_t(p) * (K^-1 [u, v, 1])`` in camera ``t``.  In camera ``t+1``
+  ``X_t = depth_t(p) * ray(p)`` in camera ``t`` (``ray`` = ``camera.pixel_rays()``: ``K^-1 [u, v, 1]``
+  for a pinhole, the undistorted direction of the distorted pixel with lens distortion).  In camera ``t+1``
   it is ``X_{t+1} = T_{t+1<-t} X_t`` with ``T_{t+1<-t} = inv(pose_{t+1}) @ pose_t``
   (:func:`relative_pose`), at depth ``z_{t+1} = X_{t+1}.z`` and pixel
   ``p' = project(X_{t+1})``.
@@ -75,8 +76,11 @@ def reproject(depth_t: np.ndarray, hit_t: np.ndarray, camera: CameraIntrinsics, 
     z1 = d * (R[2, 0] * rays[..., 0] + R[2, 1] * rays[..., 1] + R[2, 2]) + t[2]
     front = hit & (z1 > camera.near)
     zs = np.where(front, z1, 1.0)
-    u1 = camera.fx * x1 / zs + camera.cx
-    v1 = camera.fy * y1 / zs + camera.cy
+    if camera.has_distortion:               # the (distorted) image's pixel of the point: camera.project
+        u1, v1 = camera.project_normalized(x1 / zs, y1 / zs)
+    else:
+        u1 = camera.fx * x1 / zs + camera.cx
+        v1 = camera.fy * y1 / zs + camera.cy
     h, w = hit.shape
     uu = np.arange(w, dtype=np.float64)[None, :]
     vv = np.arange(h, dtype=np.float64)[:, None]

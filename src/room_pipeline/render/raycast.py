@@ -232,7 +232,7 @@ class RaycastRenderer:
         """Exact planar depth (float32, 0 = no hit) and hit mask at sub-pixel positions ``uv`` (N, 2) of a camera at ``pose``."""
         cam = self.scene.camera
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        d = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))], axis=1)
+        d = cam.rays_at(uv)                    # undistorted direction of each (distorted) image position
         if len(d) == 0:
             return np.zeros(0, np.float32), np.zeros(0, bool)
         out = self._cast_rays(np.asarray(pose, dtype=np.float64), d.astype(np.float32))
