@@ -152,3 +152,18 @@ def test_distorted_render_is_the_pinhole_render_remapped():
     assert both.mean() > 0.5
     rel = np.abs(dw[both] - out_d["depth"][both]) / out_d["depth"][both]
     assert np.median(rel) < 2e-3 and np.percentile(rel, 99) < 3e-2
+
+
+def test_room_run_refuses_a_folding_distortion_with_one_line(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "room_pipeline.cli", "run", "--until", "phantom", f"output_dir={out}",
+                        "render.distortion=[-0.5,0,0,0,0]"], cwd=root, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("room: error: render.distortion") and "folds" in lines[0]
+    assert not out.exists()
