@@ -216,6 +216,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--views", default="trachea,bifurcation,distal")
     ap.add_argument("--full-grid", action="store_true", help="also 2 spp, no-denoiser 1/16 spp, 2/4 bounces, ...")
+    ap.add_argument("--fit-interreflection", action="store_true",
+                    help="fit render.interreflection (F, window) of the ray caster against Cycles on fit views that "
+                         "are not scored views (150x150, 64 spp + OIDN, reference mesh and bounces)")
+    ap.add_argument("--fit-res", type=int, default=150)
     ap.add_argument("--make-refs", action="store_true", help="render (or find cached) references and stop")
     ap.add_argument("--quick", action="store_true", help="tiny sizes: check that the script runs")
     args = ap.parse_args()
@@ -229,6 +233,9 @@ def main() -> None:
     views = pick_views(scene, graph)
     names = [v for v in args.views.split(",") if v]
     print("views:", {n: views[n] for n in names}, flush=True)
+    if args.fit_interreflection:
+        fit_interreflection(pdir, args, views)
+        return
     ref_scene, normals = reference_scene(scene, args.ref_subdivide)
     refs = {n: make_reference(ref_scene, views[n], n, args, normals) for n in names}
     if args.make_refs:
@@ -251,6 +258,77 @@ def reference_scene(scene, levels: int):
     print(f"reference mesh: {mesh.n_faces} faces ({levels} subdivisions), texture baked in "
           f"{time.process_time() - t0:.1f} CPU s", flush=True)
     return sc, normals
+
+
+def fit_views(n_poses: int, scored: dict) -> list[int]:
+    """Poses at 15 %, 50 % and 75 % of the sequence, moved off any scored view by >= 20 poses."""
+    out = []
+    for f in (0.15, 0.5, 0.75):
+        i = int(round(f * (n_poses - 1)))
+        while any(abs(i - v) < 20 for v in scored.values()):
+            i += 5
+        out.append(min(i, n_poses - 1))
+    return out
+
+
+def fit_interreflection(pdir: Path, args, scored: dict) -> None:
+    """Grid search of (F, window) for the ray caster against Cycles on the fit views (module docstring)."""
+    from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
+    from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+    from room_pipeline.render.scene import Scene
+
+    rp = render_params()
+    scene, _ = build_scene(pdir, args.sequence, rp, args.fit_res)
+    idx = fit_views(len(scene.poses), scored)
+    print("fit views:", idx, "(scored views:", scored, ")", flush=True)
+    ref_scene, normals = reference_scene(scene, args.ref_subdivide)
+    fsc = Scene(ref_scene.mesh, ref_scene.camera, ref_scene.poses[idx], ref_scene.timestamps[idx],
+                material=ref_scene.material, light=ref_scene.light, film=ref_scene.film,
+                vertex_airway=ref_scene.vertex_airway)
+    fsc._albedo_cache = ref_scene._albedo_cache
+    st = CyclesSettings(samples=64, denoise=True, exposure=0.0, max_bounces=args.ref_bounces, threads=args.threads)
+    cyc = []
+    c0 = time.process_time()
+    with CyclesRenderer(fsc, st, vertex_normals=normals) as r:
+        for k in range(len(idx)):
+            cyc.append(r.render(k, ("rgb",))["rgb"].astype(np.float32))
+    print(f"Cycles fit views: {time.process_time() - c0:.0f} CPU s", flush=True)
+    rows = []
+    for F in (0.0, 0.35, 0.5, 0.6, 0.65, 0.7, 0.75, 0.8):
+        for win in ((6.0,) if F == 0 else (6.0, 12.0, 24.0)):
+            sc_f = dataclasses.replace(scene, material=dataclasses.replace(
+                scene.material, interreflection=F, interreflection_window_m=win * 1e-3))
+            ps = []
+            for k, i in enumerate(idx):
+                ev = film_ev(sc_f, i)
+                one = view_scene(sc_f, i)
+                one = dataclasses.replace(one, film=dataclasses.replace(one.film, exposure_ev=ev, frame_ev=None))
+                out = RaycastRenderer(one, RaycastConfig(nthreads=args.threads)).render(0, ("rgb",))
+                ref8 = to8(cyc[k], sc_f.film, ev).astype(np.float64) / 255
+                ps.append(psnr(float(np.mean((out["rgb"].astype(np.float64) / 255 - ref8) ** 2))))
+            rows.append({"interreflection": F, "window_mm": win, "psnr_db": ps, "mean_psnr_db": float(np.mean(ps))})
+            print(f"  F {F:.2f} window {win:4.1f} mm: PSNR {' '.join(f'{x:.2f}' for x in ps)}  mean "
+                  f"{rows[-1]['mean_psnr_db']:.2f}", flush=True)
+    best = max(rows, key=lambda r: r["mean_psnr_db"])
+    doc = {"fit_views": idx, "scored_views": scored, "res": args.fit_res, "cycles": "64 spp + OIDN, "
+           f"{args.ref_bounces} bounces, the reference's subdivided mesh", "rows": rows, "best": best,
+           "load_avg": os.getloadavg()}
+    if args.quick:
+        print(json.dumps(best))
+        return
+    (RESULTS / "interreflection_fit.json").write_text(json.dumps(doc, indent=1) + "\n")
+    L = ["# The ray caster's inter-reflection term fitted against Cycles (fit views only)", "",
+         f"`python benchmarks/cycles_reference.py --fit-interreflection --inputs {args.inputs}`: poses {idx} of "
+         f"{args.sequence} (never the scored views {scored}), {args.fit_res}x{args.fit_res}; Cycles 64 spp + OIDN, "
+         f"{args.ref_bounces} bounces on the reference's subdivided mesh; ray caster = the default RGB with "
+         "render.interreflection F and window; both through the same film (each F's own metered exposure).", "",
+         "| F | window mm | PSNR per view dB | mean dB |", "|---|---|---|---|"]
+    for r in rows:
+        L.append(f"| {r['interreflection']} | {r['window_mm']} | {' / '.join(f'{x:.2f}' for x in r['psnr_db'])} | "
+                 f"{r['mean_psnr_db']:.2f} |")
+    L += ["", f"Best: F {best['interreflection']}, window {best['window_mm']} mm ({best['mean_psnr_db']:.2f} dB)."]
+    (RESULTS / "interreflection_fit.md").write_text("\n".join(L) + "\n")
+    print("\n".join(L))
 
 
 def film_ev(scene, i: int) -> float:

@@ -86,6 +86,8 @@ class RenderParams:
     base_color: tuple = (0.80, 0.38, 0.32)
     roughness: float = 0.35
     specular: float = 0.5
+    interreflection: float = 0.0
+    interreflection_window_mm: float = 6.0
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
     light_offset_mm: tuple = (0.0, 0.0, 0.0)
@@ -177,7 +179,8 @@ def exposure_params(p: "RenderParams"):
 def scene_parts(p: "RenderParams") -> tuple[TissueMaterial, TipLight, Film]:
     """Material, tip light and film of the render config (lengths mm -> m)."""
     material = TissueMaterial(base_color=tuple(p.base_color), roughness=p.roughness, specular=p.specular,
-                              texture=texture_params(p.texture))
+                              texture=texture_params(p.texture), interreflection=p.interreflection,
+                              interreflection_window_m=p.interreflection_window_mm * MM)
     light = TipLight(power_w=p.light_power_w, radius_m=p.light_radius_mm * MM,
                      offset_m=tuple(float(x) * MM for x in p.light_offset_mm), falloff=p.light_falloff,
                      falloff_length_m=p.light_falloff_length_mm * MM, spot_exponent=p.light_spot_exponent)
