@@ -220,6 +220,8 @@ def main() -> None:
                     help="fit render.interreflection (F, window) of the ray caster against Cycles on fit views that "
                          "are not scored views (150x150, 64 spp + OIDN, reference mesh and bounces)")
     ap.add_argument("--fit-res", type=int, default=150)
+    ap.add_argument("--speed", action="store_true",
+                    help="CPU s per 600x600 frame of the ray caster's RGB with and without the fitted inter-reflection")
     ap.add_argument("--make-refs", action="store_true", help="render (or find cached) references and stop")
     ap.add_argument("--quick", action="store_true", help="tiny sizes: check that the script runs")
     args = ap.parse_args()
@@ -235,6 +237,9 @@ def main() -> None:
     print("views:", {n: views[n] for n in names}, flush=True)
     if args.fit_interreflection:
         fit_interreflection(pdir, args, views)
+        return
+    if args.speed:
+        speed(scene, views, names, args)
         return
     ref_scene, normals = reference_scene(scene, args.ref_subdivide)
     refs = {n: make_reference(ref_scene, views[n], n, args, normals) for n in names}
@@ -331,6 +336,43 @@ def fit_interreflection(pdir: Path, args, scored: dict) -> None:
     print("\n".join(L))
 
 
+def speed(scene, views, names, args) -> None:
+    """CPU / wall seconds of the ray caster's RGB (cast included, exposure fixed) per frame, F 0 vs fitted."""
+    from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+
+    b = json.loads((RESULTS / "interreflection_fit.json").read_text())["best"]
+    rows = []
+    for n in names:
+        i = views[n]
+        for F, win in ((0.0, 6.0), (b["interreflection"], b["window_mm"])):
+            mat = dataclasses.replace(scene.material, interreflection=F, interreflection_window_m=win * 1e-3)
+            sc = dataclasses.replace(view_scene(scene, i), material=mat)
+            sc = dataclasses.replace(sc, film=dataclasses.replace(sc.film, exposure_ev=0.0, frame_ev=None))
+            rc = RaycastRenderer(sc, RaycastConfig(nthreads=args.threads))
+            rc.render(0, ("rgb",))
+            cpu, wall = [], []
+            for _ in range(3):
+                rc._cache.clear()
+                c0, w0 = time.process_time(), time.perf_counter()
+                rc.render(0, ("rgb",))
+                cpu.append(time.process_time() - c0)
+                wall.append(time.perf_counter() - w0)
+            rows.append({"view": n, "interreflection": F, "window_mm": win, "cpu_s": float(np.median(cpu)),
+                         "wall_s": float(np.median(wall))})
+            print(json.dumps(rows[-1]), flush=True)
+    doc = {"res": args.res, "threads": args.threads, "rows": rows, "load_avg": os.getloadavg()}
+    (RESULTS / "interreflection_speed.json").write_text(json.dumps(doc, indent=1) + "\n")
+    L = ["# The ray caster's RGB with and without the inter-reflection term: cost per frame", "",
+         f"`python benchmarks/cycles_reference.py --speed --inputs {args.inputs}`: {args.res}x{args.res}, cast + "
+         f"normals + per-pixel appearance + shading + film (exposure fixed; the meter pre-pass is extra), "
+         f"{args.threads} threads, median of 3; load average {doc['load_avg'][0]:.1f} (wall is inflated by it).", "",
+         "| view | F | window mm | CPU s/frame | wall s/frame |", "|---|---|---|---|---|"]
+    for r in rows:
+        L.append(f"| {r['view']} | {r['interreflection']} | {r['window_mm']} | {r['cpu_s']:.3f} | {r['wall_s']:.3f} |")
+    (RESULTS / "interreflection_speed.md").write_text("\n".join(L) + "\n")
+    print("\n".join(L))
+
+
 def film_ev(scene, i: int) -> float:
     """The render stage's per-frame automatic exposure of pose ``i`` metered on that frame alone (EV)."""
     from room_pipeline.render.exposure import raw_exposures, smooth_exposures
@@ -368,10 +410,10 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
     for n in names:
         i = views[n]
         meta = json.loads((refs[n] / "meta.json").read_text())
-        a, b = (np.load(p) for p in sorted(refs[n].glob("half_*.npy")))
+        a, b_half = (np.load(p) for p in sorted(refs[n].glob("half_*.npy")))
         ev = film_ev(scene, i)
-        a8, b8 = (to8(h, film, ev).astype(np.float64) / 255 for h in (a, b))
-        ref8 = to8(0.5 * (a + b), film, ev).astype(np.float64) / 255
+        a8, b8 = (to8(h, film, ev).astype(np.float64) / 255 for h in (a, b_half))
+        ref8 = to8(0.5 * (a + b_half), film, ev).astype(np.float64) / 255
         mse_ref = float(np.mean((a8 - b8) ** 2)) / 4
         references.append({"view": n, "pose_index": i, "exposure_ev": ev, "ref": meta,
                            "ref_psnr_vs_noise_free_db": psnr(mse_ref)})
@@ -389,16 +431,37 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
 
         sc = view_scene(scene, i)
         sc2 = dataclasses.replace(sc, film=dataclasses.replace(film, exposure_ev=ev, frame_ev=None))
-        for per_pixel, label in ((True, "ray caster (default RGB: per-pixel appearance)"),
-                                 (False, "ray caster, appearance at the vertices (as Cycles)")):
-            rc = RaycastRenderer(sc2, RaycastConfig(nthreads=args.threads, per_pixel_texture=per_pixel,
+        variants = [(True, None, f"ray caster (default RGB: per-pixel appearance, interreflection "
+                                  f"{sc.material.interreflection})"),
+                    (False, None, "ray caster, appearance at the vertices (as Cycles)")]
+        fit = RESULTS / "interreflection_fit.json"
+        if fit.exists():             # the fitted inter-reflection term (fitted on other views), if not the default
+            b = json.loads(fit.read_text())["best"]
+            if b["interreflection"] != sc.material.interreflection:
+                variants.append((True, b, f"ray caster + fitted interreflection F {b['interreflection']}, "
+                                          f"window {b['window_mm']} mm"))
+        for per_pixel, b, label in variants:
+            scv = sc2
+            if b is not None:        # its own metered exposure; the reference goes through the same film at that EV
+                mat = dataclasses.replace(sc.material, interreflection=b["interreflection"],
+                                          interreflection_window_m=b["window_mm"] * 1e-3)
+                ev_b = film_ev(dataclasses.replace(scene, material=mat), i)
+                scv = dataclasses.replace(sc2, material=mat, film=dataclasses.replace(sc2.film, exposure_ev=ev_b))
+            rc = RaycastRenderer(scv, RaycastConfig(nthreads=args.threads, per_pixel_texture=per_pixel,
                                                     shading_stride=rp.shading_stride))
             rc.cast(0)
             rc._cache.clear()
             c0, w0 = time.process_time(), time.perf_counter()
             out = rc.render(0, ("rgb",))
-            score(label, out["rgb"], time.process_time() - c0, time.perf_counter() - w0, renderer="raycast",
-                  per_pixel_texture=per_pixel)
+            cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+            if b is None:
+                score(label, out["rgb"], cpu, wall, renderer="raycast", per_pixel_texture=per_pixel)
+            else:                    # scored against the reference at this variant's own exposure
+                saved = ref8
+                ref8 = to8(0.5 * (a + b_half), film, ev_b).astype(np.float64) / 255
+                score(label, out["rgb"], cpu, wall, renderer="raycast", per_pixel_texture=True,
+                      interreflection=b, exposure_ev=ev_b)
+                ref8 = saved
         # (spp, OIDN, bounces, resolution scale, mesh): "product" = the render stage's Cycles scene (appearance
         # baked at the mesh's vertices), "subdivided" = the reference's mesh (isolates sampling from texture)
         grid = [(1, True, 3, 1.0, "product"), (4, True, 3, 1.0, "product"), (16, True, 3, 1.0, "product"),
