@@ -222,6 +222,7 @@ def main() -> None:
     ap.add_argument("--fit-res", type=int, default=150)
     ap.add_argument("--speed", action="store_true",
                     help="CPU s per 600x600 frame of the ray caster's RGB with and without the fitted inter-reflection")
+    ap.add_argument("--merge", action="store_true", help="keep the other views of the existing results file")
     ap.add_argument("--make-refs", action="store_true", help="render (or find cached) references and stop")
     ap.add_argument("--quick", action="store_true", help="tiny sizes: check that the script runs")
     args = ap.parse_args()
@@ -505,6 +506,13 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
         print(json.dumps(doc, indent=1, default=float)[:1500])
         return
     RESULTS.mkdir(parents=True, exist_ok=True)
+    old = RESULTS / "cycles_reference.json"
+    if args.merge and old.exists():          # keep the other views of an earlier run (same inputs and settings)
+        prev = json.loads(old.read_text())
+        if prev.get("args", {}).get("res") == args.res and prev.get("inputs") == doc["inputs"]:
+            doc["references"] = [r for r in prev.get("references", []) if r["view"] not in names] + doc["references"]
+            doc["quality"] = [r for r in prev.get("quality", []) if r["view"] not in names] + doc["quality"]
+            doc["machine"]["load_avg_at_start"] = prev["machine"]["load_avg_at_start"]
     (RESULTS / "cycles_reference.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
     write_md(doc)
 

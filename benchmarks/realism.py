@@ -99,6 +99,24 @@ def score(paths, real_paths, noise=True) -> dict:
     return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in c.items()}
 
 
+def score_sets(paths, sets: dict, noise=True) -> dict:
+    """:func:`score` against several real sets, the synthetic frames' statistics computed once."""
+    from room_pipeline import realism as R
+
+    ss = R.set_stats(R.load(paths, 256))
+    psd_s = R.residual_psd(R.load(paths, 600)) if noise else None
+    out = {}
+    for k, real_paths in sets.items():
+        rs = R.set_stats(R.load(real_paths, 256))
+        psd_r = R.residual_psd(R.load(real_paths, 600)) if noise else None
+        c = R.compare(rs, ss, psd_r, psd_s)
+        c.update(synth_lab=[round(float(x), 2) for x in ss["lab_mean"]],
+                 real_lab=[round(float(x), 2) for x in rs["lab_mean"]],
+                 clipped_mean=ss["clipped_fraction"], clipped_max=ss["clipped_max"], dark=ss["dark_fraction"])
+        out[k] = {kk: (round(v, 4) if isinstance(v, float) else v) for kk, v in c.items()}
+    return out
+
+
 def lab_to_linear(lab) -> np.ndarray:
     import cv2
 
@@ -280,7 +298,7 @@ def from_run(run: Path, real: list, no_psd: bool) -> None:
     sets = {"fit": real[:half], "check": real[half:], "all": real}
     noisy = [p for ps, _ in noisy_all for p in ps]
     res = {"run": str(run), "per_sequence": rows, "noisy_all": pooled(noisy_all), "clean_all": pooled(clean_all),
-           "realism": {k: score(noisy, ps, noise=not no_psd) for k, ps in sets.items()} if noisy else {}, "env": env}
+           "realism": score_sets(noisy, sets, noise=not no_psd) if noisy else {}, "env": env}
     res["cpu_s"] = round(time.process_time() - c0, 1)
     res["env"]["load_avg_end"] = os.getloadavg()[0]
     (RESULTS / "realism_run.json").write_text(json.dumps(res, indent=1, default=str))
