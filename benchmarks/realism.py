@@ -2,6 +2,7 @@
 """Realism of the default RGB against real bronchoscope frames; the appearance fit; a lighting sweep.
 
     python benchmarks/realism.py [--inputs DIR] [--stride 10] [--fit] [--sweep] [--real DIR]
+    python benchmarks/realism.py --from-run OUTPUT_DIR      # score a finished default run's frames as they are
 
 Inputs: an output_dir holding ``patient_000/anatomy/{lung_model.obj,centreline_graph.json}`` and
 ``patient_000/sequence_000/metadata/simulation.json`` (``room run --until simulate output_dir=DIR``).
@@ -23,7 +24,12 @@ values (to copy into ``conf/render/default.yaml``); never per frame.
 ``--sweep``: a lighting sweep (light power, falloff, spot exponent, exposure target) with its
 realism statistics.
 
-Results: benchmarks/results/realism.{json,md} (and realism_fit / realism_sweep).
+``--from-run OUTPUT_DIR``: nothing is rendered; every frame of every ``patient_*/sequence_*/rgb_noisy``
+(and ``rgb``) folder of a finished run (e.g. the default ``dvc repro``) is scored: clipped / dark
+fractions per sequence and over all of them (mean and worst frame), and the realism statistics of the
+noisy frames against the real fit / check / all sets (``benchmarks/results/realism_run.{json,md}``).
+
+Results: benchmarks/results/realism.{json,md} (and realism_fit / realism_sweep / realism_clipping / realism_run).
 """
 from __future__ import annotations
 
@@ -93,6 +99,24 @@ def score(paths, real_paths, noise=True) -> dict:
     return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in c.items()}
 
 
+def score_sets(paths, sets: dict, noise=True) -> dict:
+    """:func:`score` against several real sets, the synthetic frames' statistics computed once."""
+    from room_pipeline import realism as R
+
+    ss = R.set_stats(R.load(paths, 256))
+    psd_s = R.residual_psd(R.load(paths, 600)) if noise else None
+    out = {}
+    for k, real_paths in sets.items():
+        rs = R.set_stats(R.load(real_paths, 256))
+        psd_r = R.residual_psd(R.load(real_paths, 600)) if noise else None
+        c = R.compare(rs, ss, psd_r, psd_s)
+        c.update(synth_lab=[round(float(x), 2) for x in ss["lab_mean"]],
+                 real_lab=[round(float(x), 2) for x in rs["lab_mean"]],
+                 clipped_mean=ss["clipped_fraction"], clipped_max=ss["clipped_max"], dark=ss["dark_fraction"])
+        out[k] = {kk: (round(v, 4) if isinstance(v, float) else v) for kk, v in c.items()}
+    return out
+
+
 def lab_to_linear(lab) -> np.ndarray:
     import cv2
 
@@ -114,9 +138,15 @@ def main() -> None:
     ap.add_argument("--no-noise-psd", action="store_true")
     ap.add_argument("--clipping", action="store_true",
                     help="only the clipped/dark fractions and mean Lab of every --stride-th frame (noisy RGB)")
+    ap.add_argument("--from-run", default=None, metavar="OUTPUT_DIR",
+                    help="score the frames of a finished run (every frame of every sequence), render nothing")
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args()
     from room_pipeline import realism as R
+
+    if a.from_run:
+        from_run(Path(a.from_run), R.frame_paths(a.real), a.no_noise_psd)
+        return
 
     out = prepare(Path(a.inputs), "fit" if a.fit else "sweep" if a.sweep else "clipping" if a.clipping else "score")
     real = R.frame_paths(a.real)
@@ -235,6 +265,66 @@ def main() -> None:
     md += ["", f"Synthetic mean Lab {res['all']['synth_lab']}, real {res['all']['real_lab']}; per-frame exposure range "
                f"{res['frame_ev_range']} EV."]
     (RESULTS / "realism.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
+def from_run(run: Path, real: list, no_psd: bool) -> None:
+    """Clipping and realism statistics of every frame of a finished run (see the module docstring)."""
+    from room_pipeline import realism as R
+
+    c0, env = time.process_time(), {"load_avg_start": os.getloadavg()[0], "cores": os.cpu_count()}
+    seqs = sorted(d for d in run.glob("*/sequence_*") if (d / "rgb_noisy").is_dir() or (d / "rgb").is_dir())
+    if not seqs:
+        sys.exit(f"realism.py: no patient_*/sequence_*/rgb_noisy under {run}")
+    rows, noisy_all, clean_all = [], [], []
+    for d in seqs:
+        for kind in ("rgb_noisy", "rgb"):
+            ps = sorted((d / kind).glob("frame_*.png"))
+            if not ps:
+                continue
+            m = R.sequence_metrics(ps)
+            rows.append({"sequence": f"{d.parent.name}/{d.name}", "kind": kind, "frames": len(ps), **m})
+            (noisy_all if kind == "rgb_noisy" else clean_all).append((ps, m))
+            print(json.dumps(rows[-1]), flush=True)
+
+    def pooled(group):
+        n = sum(len(ps) for ps, _ in group)
+        return {"frames": n,
+                "clipped_mean": sum(m["rgb_clipped_fraction_mean"] * len(ps) for ps, m in group) / n,
+                "clipped_max": max(m["rgb_clipped_fraction_max"] for _, m in group),
+                "dark_mean": sum(m["rgb_dark_fraction_mean"] * len(ps) for ps, m in group) / n} if group else None
+
+    half = len(real) // 2
+    sets = {"fit": real[:half], "check": real[half:], "all": real}
+    noisy = [p for ps, _ in noisy_all for p in ps]
+    res = {"run": str(run), "per_sequence": rows, "noisy_all": pooled(noisy_all), "clean_all": pooled(clean_all),
+           "realism": score_sets(noisy, sets, noise=not no_psd) if noisy else {}, "env": env}
+    res["cpu_s"] = round(time.process_time() - c0, 1)
+    res["env"]["load_avg_end"] = os.getloadavg()[0]
+    (RESULTS / "realism_run.json").write_text(json.dumps(res, indent=1, default=str))
+    md = ["# Clipping and realism over every frame of a finished run", "",
+          f"`python benchmarks/realism.py --from-run {run}`: every frame of every sequence, full resolution, as the "
+          "run wrote them (nothing re-rendered); clipped = a channel >= 250, dark = all channels <= 10.", "",
+          "| sequence | kind | frames | clipped mean | clipped worst frame | dark mean | mean Lab |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        md.append(f"| {r['sequence']} | {r['kind']} | {r['frames']} | {100 * r['rgb_clipped_fraction_mean']:.3f} % | "
+                  f"{100 * r['rgb_clipped_fraction_max']:.3f} % | {100 * r['rgb_dark_fraction_mean']:.3f} % | "
+                  f"[{r['rgb_L_mean']}, {r['rgb_a_mean']}, {r['rgb_b_mean']}] |")
+    for k in ("noisy_all", "clean_all"):
+        g = res[k]
+        if g:
+            md.append(f"| all ({k.split('_')[0]}) | | {g['frames']} | {100 * g['clipped_mean']:.3f} % | "
+                      f"{100 * g['clipped_max']:.3f} % | {100 * g['dark_mean']:.3f} % | |")
+    if res["realism"]:
+        md += ["", "Noisy frames of every sequence against the real BREA-Depth frames (fit = first 30, check = last "
+                   "30 held out):", "", "| real set | dE76 | L* EMD | clipped mean | clipped max frame | dark | "
+                   "radial profile MAD | gradient hist L1 | noise LSD dB |", "|---|---|---|---|---|---|---|---|---|"]
+        for k, s_ in res["realism"].items():
+            md.append(f"| {k} | {s_['dE76_mean_colour']:.2f} | {s_['L_hist_emd']:.2f} | {s_['clipped_mean']:.4f} | "
+                      f"{s_['clipped_max']:.4f} | {s_['dark']:.4f} | {s_['radial_profile_mad']:.2f} | "
+                      f"{s_['gradient_hist_L1']:.3f} | {s_.get('noise_lsd_db', float('nan')):.2f} |")
+    md += ["", f"{res['cpu_s']} CPU s; load average {env['load_avg_start']:.1f} -> {env['load_avg_end']:.1f}."]
+    (RESULTS / "realism_run.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
 

@@ -38,7 +38,12 @@ Meshes
 Cameras (later stages)
     OpenCV camera frame (x right, y down, z forward); poses are 4x4
     camera-to-world transforms; depth is planar z-depth in metres; optical
-    flow is forward (t -> t+1) in pixels.
+    flow is forward (t -> t+1) in pixels.  Images and lens distortion: every
+    rendered image (RGB and the geometric modalities: depth, normals, flow,
+    segmentation, point-cloud pixels) is in the *distorted* image of
+    ``calibration/camera_params.json`` (OpenCV k1, k2, p1, p2, k3; all zero =
+    ideal pinhole): pixel (u, v) sees the surface along the undistorted
+    direction of that pixel centre, and flow targets are distorted pixels.
 """
 from __future__ import annotations
 
@@ -49,6 +54,8 @@ SDF_SIGN = "negative inside the airway lumen, positive outside; gradient = outwa
 MESH_ORIENTATION = "closed lumen surface, counter-clockwise seen from outside, normals point from air into tissue"
 CAMERA_FRAME = "OpenCV: x right, y down, z forward"
 POSE_CONVENTION = "4x4 camera-to-world"
+IMAGE_CONVENTION = ("every image (rgb, depth, normals, flow, segmentation) is in the distorted image of "
+                    "camera_params.json (OpenCV k1, k2, p1, p2, k3; zero = pinhole)")
 
 #: metres per millimetre
 MM = 1e-3
@@ -66,4 +73,5 @@ def metadata_block() -> dict:
         "mesh_orientation": MESH_ORIENTATION,
         "camera_frame": CAMERA_FRAME,
         "pose": POSE_CONVENTION,
+        "image": IMAGE_CONVENTION,
     }

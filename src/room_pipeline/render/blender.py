@@ -241,8 +241,13 @@ class CyclesRenderer:
     to remove the temporary EXR folder.
     """
 
-    def __init__(self, scene: Scene, settings: CyclesSettings | None = None, tmp_dir: str | os.PathLike | None = None):
+    def __init__(self, scene: Scene, settings: CyclesSettings | None = None, tmp_dir: str | os.PathLike | None = None,
+                 vertex_normals: np.ndarray | None = None):
         self.scene = scene
+        #: optional (V, 3) unit vertex normals for smooth shading, pointing into the lumen (the side Blender's
+        #: faces show the camera), e.g. a subdivided mesh that keeps its parent's interpolated normals;
+        #: None: Blender's own vertex normals
+        self.vertex_normals = vertex_normals
         self.settings = settings or CyclesSettings()
         self._own_tmp = tmp_dir is None
         self.tmp_dir = Path(tempfile.mkdtemp(prefix="room_cycles_") if tmp_dir is None else tmp_dir)
@@ -281,6 +286,11 @@ class CyclesRenderer:
         me.validate(verbose=False)
         if st.smooth_shading:
             me.shade_smooth()
+            if self.vertex_normals is not None:
+                vn = np.asarray(self.vertex_normals, dtype=np.float64)
+                if vn.shape != v.shape:
+                    raise RuntimeError(f"vertex_normals {vn.shape} for {len(v)} vertices")
+                me.normals_split_custom_set_from_vertices([tuple(x) for x in vn.tolist()])
         else:
             me.shade_flat()
         va = sc.vertex_albedo()
@@ -302,6 +312,9 @@ class CyclesRenderer:
         cam = bpy.data.objects.new("scope", cd)
         bs.collection.objects.link(cam)
         bs.camera = cam
+        if sc.camera.has_distortion:   # Cycles' perspective camera is an ideal pinhole
+            raise ConfigError(f"camera distortion {list(sc.camera.distortion)}: Cycles renders an ideal pinhole "
+                              "image only (render.backend=raycast renders the lens distortion)")
         ci = blender_camera_intrinsics(sc.camera)
         for k in ("sensor_fit", "sensor_width", "lens", "shift_x", "shift_y", "clip_start", "clip_end"):
             setattr(cd, k, ci[k])

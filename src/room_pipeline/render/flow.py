@@ -4,7 +4,8 @@ Definitions (OpenCV camera, pixel (u, v) = (column, row), centre of the
 top-left pixel at (0, 0); poses camera-to-world):
 
 * The surface point seen at pixel ``p = (u, v)`` of frame ``t`` is
-  ``X_t = depth_t(p) * (K^-1 [u, v, 1])`` in camera ``t``.  In camera ``t+1``
+  ``X_t = depth_t(p) * ray(p)`` in camera ``t`` (``ray`` = ``camera.pixel_rays()``: ``K^-1 [u, v, 1]``
+  for a pinhole, the undistorted direction of the distorted pixel with lens distortion).  In camera ``t+1``
   it is ``X_{t+1} = T_{t+1<-t} X_t`` with ``T_{t+1<-t} = inv(pose_{t+1}) @ pose_t``
   (:func:`relative_pose`), at depth ``z_{t+1} = X_{t+1}.z`` and pixel
   ``p' = project(X_{t+1})``.
@@ -96,9 +97,8 @@ def reproject(depth_t: np.ndarray, hit_t: np.ndarray, camera: CameraIntrinsics, 
     front &= hit
     zs = np.where(front, z1, 1.0)
     h, w = hit.shape
-    if any(float(c) != 0.0 for c in camera.distortion):    # the camera's own projection (lens model)
-        uv = camera.project(np.stack([x1, y1, zs], axis=-1).reshape(-1, 3))
-        u1, v1 = uv[:, 0].reshape(h, w), uv[:, 1].reshape(h, w)
+    if camera.has_distortion:               # the (distorted) image's pixel of the point: the camera's lens model
+        u1, v1 = camera.project_normalized(x1 / zs, y1 / zs)
     else:                                                   # u1 = fx * x1 / zs + cx, v1 = fy * y1 / zs + cy
         u1 = x1
         u1 *= camera.fx

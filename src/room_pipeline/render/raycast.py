@@ -69,7 +69,8 @@ from ..conventions import metadata_block
 from ..io.ply import write_ply
 from . import flow as flowmod
 from .scene import Scene
-from .shading import VIEW_TRANSFORMS, apply_response, auto_exposure_ev, shade_coaxial, shade_linear
+from .shading import (VIEW_TRANSFORMS, apply_response, auto_exposure_ev, interreflection, shade_coaxial,
+                      shade_linear)
 
 MODALITIES = frozenset({"rgb", "depth", "relative_depth", "normals", "flow", "point_cloud", "segmentation",
                         "world_points"})
@@ -266,7 +267,7 @@ class RaycastRenderer:
         """Exact planar depth (float32, 0 = no hit) and hit mask at sub-pixel positions ``uv`` (N, 2) of a camera at ``pose``."""
         cam = self.scene.camera
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        d = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))], axis=1)
+        d = cam.rays_at(uv)                    # undistorted direction of each (distorted) image position
         if len(d) == 0:
             return np.zeros(0, np.float32), np.zeros(0, bool)
         out = self._cast_rays(np.asarray(pose, dtype=np.float64), d.astype(np.float32))
@@ -437,13 +438,17 @@ class RaycastRenderer:
 
     def _linear(self, i: int, c: Cast, normals: np.ndarray, n_dot_ray: np.ndarray) -> np.ndarray:
         light = self.scene.light
+        mat = self.scene.material
         alb = self.albedo_per_pixel(i, c) if self._per_pixel else self.albedo(c)
         if np.any(np.asarray(light.offset_m) != 0):
-            return shade_linear(self.camera_points(c), normals, c.hit, self.scene.material, light, alb)
-        # light at the camera: cos = -(n . ray) / |ray|, distance^2 = depth^2 |ray|^2
-        cos = -n_dot_ray * self._inv_ray_len
-        d2 = c.depth * c.depth * self._ray_len2
-        return shade_coaxial(cos, d2, c.hit, self.scene.material, light, alb, cos_axis=self._inv_ray_len)
+            lin = shade_linear(self.camera_points(c), normals, c.hit, mat, light, alb)
+        else:       # light at the camera: cos = -(n . ray) / |ray|, distance^2 = depth^2 |ray|^2
+            cos = -n_dot_ray * self._inv_ray_len
+            d2 = c.depth * c.depth * self._ray_len2
+            lin = shade_coaxial(cos, d2, c.hit, mat, light, alb, cos_axis=self._inv_ray_len)
+        if mat.interreflection > 0:
+            lin += interreflection(lin, alb, c.depth, c.hit, mat)
+        return lin
 
     # ------------------------------------------------------------------ render
     def render(self, frame_index: int, modalities: Iterable[str] = ("rgb", "depth")) -> dict[str, np.ndarray]:

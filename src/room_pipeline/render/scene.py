@@ -30,6 +30,15 @@ class TissueMaterial:
     subsurface_weight: float = 0.0
     subsurface_radius_m: tuple[float, float, float] = (1.0e-3, 0.4e-3, 0.25e-3)
     texture: MucosaTexture | None = None
+    #: ray caster only (Cycles traces the inter-reflections): the wall-to-wall light it adds,
+    #: :func:`~room_pipeline.render.shading.interreflection` (0 = single bounce)
+    interreflection: float = 0.0
+    interreflection_window_m: float = 0.006
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.interreflection < 1.0 or not self.interreflection_window_m > 0:
+            raise ValueError(f"material: 0 <= interreflection < 1 and interreflection_window > 0 required, got "
+                             f"{self.interreflection}, {self.interreflection_window_m}")
 
 
 @dataclasses.dataclass(frozen=True)

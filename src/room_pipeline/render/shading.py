@@ -145,6 +145,51 @@ def shade_coaxial(cos_nv: np.ndarray, dist2: np.ndarray, mask: np.ndarray | None
                      if cos_axis is not None else light_profile(np.ones_like(c), d2, light))
 
 
+def interreflection(direct: np.ndarray, albedo: np.ndarray | None, depth: np.ndarray, hit: np.ndarray,
+                    material: TissueMaterial) -> np.ndarray:
+    """Wall-to-wall light of a lumen (linear RGB (H, W, 3) float32) to add to the single-bounce ``direct``.
+
+    A lumen is nearly closed: each wall point sees other walls in most of its
+    hemisphere, and those walls at about its own depth are the brightest.  The
+    indirect irradiance is modelled as ``F`` times the mean radiosity of the walls
+    seen at a similar planar depth (``pi`` x their outgoing radiance, pixels
+    within a Gaussian window of ``interreflection_window_m`` in depth), with
+    every further bounce in the geometric series of the frame's mean albedo:
+
+        L_ind = albedo * F * mean_z(L_direct) / (1 - F * mean(albedo))     (per channel)
+
+    ``F = material.interreflection`` (0: nothing added) is fitted against Cycles'
+    path tracing (``python benchmarks/cycles_reference.py --fit-interreflection``).
+    ``albedo``: per-pixel albedo, None = ``material.base_color``.
+    """
+    f = float(material.interreflection)
+    h, w = depth.shape
+    out = np.zeros((h, w, 3), dtype=np.float32)
+    hit = np.asarray(hit, dtype=bool)
+    if f <= 0 or not hit.any():
+        return out
+    z = np.asarray(depth, dtype=np.float64)[hit]
+    step = material.interreflection_window_m / 2
+    idx = np.floor((z - z.min()) / step).astype(np.int64)
+    nb = int(idx.max()) + 1
+    x = np.arange(nb, dtype=np.float64)
+    kern = np.exp(-0.5 * ((x[:, None] - x[None, :]) / 2.0) ** 2) if nb <= 2048 else None
+    cnt = np.bincount(idx, minlength=nb).astype(np.float64)
+    lin = np.asarray(direct, dtype=np.float32)[hit].astype(np.float64)
+    alb = (np.broadcast_to(np.asarray(material.base_color, dtype=np.float64), lin.shape) if albedo is None
+           else np.asarray(albedo, dtype=np.float64)[hit])
+    rho = alb.mean(axis=0)
+    for ch in range(3):
+        sums = np.bincount(idx, weights=lin[:, ch], minlength=nb)
+        if kern is not None:
+            mean = (kern @ sums) / np.maximum(kern @ cnt, 1e-12)
+        else:
+            mean = sums / np.maximum(cnt, 1e-12)
+        gain = f / max(1.0 - f * float(rho[ch]), 1e-3)
+        out[..., ch][hit] = (alb[:, ch] * gain * mean[idx]).astype(np.float32)
+    return out
+
+
 def luminance(linear_rgb: np.ndarray) -> np.ndarray:
     return np.asarray(linear_rgb, dtype=np.float32) @ LUMINANCE
 

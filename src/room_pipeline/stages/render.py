@@ -82,9 +82,12 @@ class RenderParams:
     fov_deg: float = 85.0
     near_mm: float = 0.1
     far_mm: float = 500.0
+    distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)
     base_color: tuple = (0.80, 0.38, 0.32)
     roughness: float = 0.35
     specular: float = 0.5
+    interreflection: float = 0.0
+    interreflection_window_mm: float = 6.0
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
     light_offset_mm: tuple = (0.0, 0.0, 0.0)
@@ -128,6 +131,7 @@ class RenderParams:
             raise ConfigError(f"render.max_frames must be null or an integer >= 1, got {p.max_frames!r}")
         if not 0.0 < p.near_mm < p.far_mm:
             raise ConfigError(f"render: 0 < near_mm < far_mm required, got near_mm={p.near_mm}, far_mm={p.far_mm}")
+        camera_of(p)
         texture_params(p.texture)
         StorageParams.from_dict(p.storage)
         if p.auto_exposure not in ("per_frame", "first_frame"):
@@ -144,6 +148,24 @@ class RenderParams:
         return p
 
 
+def camera_of(p: "RenderParams") -> CameraIntrinsics:
+    """The render config's camera (lengths mm -> m); a distortion that is not a lens or that Cycles would
+    have to render: ConfigError."""
+    d = p.distortion
+    if (isinstance(d, (str, bytes)) or not hasattr(d, "__len__") or len(d) != 5
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in d)):
+        raise ConfigError(f"render.distortion must be 5 numbers (k1, k2, p1, p2, k3; OpenCV), got {d!r}")
+    cam = CameraIntrinsics.from_fov(p.width, p.height, p.fov_deg, p.near_mm * MM, p.far_mm * MM, distortion=d)
+    try:
+        cam.check_distortion()
+    except ValueError as e:
+        raise ConfigError(f"render.distortion: {e}") from None
+    if cam.has_distortion and p.backend == "cycles":
+        raise ConfigError(f"render.distortion {list(cam.distortion)}: Cycles renders an ideal pinhole image only; "
+                          "use render.backend=raycast or render.distortion=[0,0,0,0,0]")
+    return cam
+
+
 def exposure_params(p: "RenderParams"):
     """The per-frame automatic exposure's parameters (render.auto_exposure_*)."""
     from ..render.exposure import ExposureParams
@@ -157,7 +179,8 @@ def exposure_params(p: "RenderParams"):
 def scene_parts(p: "RenderParams") -> tuple[TissueMaterial, TipLight, Film]:
     """Material, tip light and film of the render config (lengths mm -> m)."""
     material = TissueMaterial(base_color=tuple(p.base_color), roughness=p.roughness, specular=p.specular,
-                              texture=texture_params(p.texture))
+                              texture=texture_params(p.texture), interreflection=p.interreflection,
+                              interreflection_window_m=p.interreflection_window_mm * MM)
     light = TipLight(power_w=p.light_power_w, radius_m=p.light_radius_mm * MM,
                      offset_m=tuple(float(x) * MM for x in p.light_offset_mm), falloff=p.light_falloff,
                      falloff_length_m=p.light_falloff_length_mm * MM, spot_exponent=p.light_spot_exponent)
@@ -441,7 +464,7 @@ def run(cfg: DictConfig, key: str) -> dict:
         mesh = read_obj(paths.mesh)
         graph = CentrelineGraph.from_dict(read_json(paths.centreline_graph))
         labels, legend = face_labels(mesh, graph)
-        cam = CameraIntrinsics.from_fov(p.width, p.height, p.fov_deg, p.near_mm * MM, p.far_mm * MM)
+        cam = camera_of(p)
         material, light, film = scene_parts(p)
         airway = airway_coordinates(mesh.vertices, graph) if material.texture.enabled else None
         scene = Scene(mesh, cam, poses[src], ts[src], material=material, light=light, film=film,
