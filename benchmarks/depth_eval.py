@@ -222,7 +222,7 @@ def markdown(res: dict) -> str:
         L.append(f"- {ph}: " + ", ".join(f"{v:.3f}" for v in curve))
     L += ["", "## 3. Speed against error (stage evaluate_depth) -- Table II", ""]
     for ev in res["evaluations"]:
-        L += [f"### {ev['key']}: {ev['frames']} frames (every {ev['stride']}th of the whole sequence), stage wall "
+        L += [f"### {ev['key']}: {ev['frames']} frames (the whole sequence, frame_stride {ev['stride']}), stage wall "
               f"time {ev['wall_s']:.1f} s, CPU {ev['cpu_s']:.1f} s", "",
               "| method | scaling | AbsRel | delta1 | L1 (mm) | RMSE (mm) | s/frame | CPU s/frame | note |",
               "|---|---|---|---|---|---|---|---|---|"]
@@ -268,7 +268,8 @@ def main() -> int:
     args = ap.parse_args()
     data = args.data.resolve()
     seq = data / "patient_000" / "sequence_000"
-    folder = DepthParams.from_dict({}).input
+    conf = DepthParams.from_dict(OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "depth" / "default.yaml")))
+    folder = conf.input
     if not (seq / "rgb").is_dir():
         print(f"no rendered sequence at {seq}: see the docstring for how to make it", file=sys.stderr)
         return 2
@@ -276,8 +277,7 @@ def main() -> int:
         folder = "rgb"
     candidates = [args.other] if args.other else ["patient_001", "medmpd_1"]
     masks = [q for q in candidates if (data / q / "sequence_000" / "rgb").is_dir()][:1]
-    stride = int(DepthParams.from_dict(OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "depth" /
-                                                                             "default.yaml"))).frame_stride)
+    stride = int(conf.frame_stride)
     n_frames = len(list((seq / "rgb").glob("*.png")))
     res = {"command": "python benchmarks/depth_eval.py " + " ".join(sys.argv[1:]),
            "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores", "load_start": os.getloadavg()[0],
