@@ -139,6 +139,8 @@ def main() -> int:
     ap.add_argument("--strides", default="1,2,3,4,5", help="frame strides for the VO methods and baselines")
     ap.add_argument("--colmap-strides", default="", help="strides COLMAP also runs at besides the default")
     ap.add_argument("--render-commit", help="commit that rendered DATA (default: DATA's git checkout, if any)")
+    ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods (the trivial baselines "
+                                                                 "are always scored)")
     ap.add_argument("--sequences", default="", help="comma-separated patient/sequence keys (default: all)")
     args = ap.parse_args()
     data = args.data.resolve()
@@ -162,7 +164,7 @@ def main() -> int:
            "default_stride": default, "runs": []}
     for patient, sequence in keys:
         for stride in strides:
-            methods = tuple(m for m in METHODS if m != "colmap" or stride in colmap_strides)
+            methods = tuple(m for m in args.methods.split(",") if m and (m != "colmap" or stride in colmap_strides))
             run = evaluate(data, patient, sequence, stride, methods, conf)
             res["runs"].append({"sequence": f"{patient}/{sequence}", "stride": stride, **run})
     res["load_end"] = os.getloadavg()[0]
