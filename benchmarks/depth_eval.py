@@ -1,26 +1,25 @@
-"""Monocular depth benchmark: accuracy and speed of every estimator, the fine-tuning experiment, the 100-frame target.
+"""Monocular depth benchmark: accuracy and speed of every estimator and the fine-tuning experiment.
 
-    .venv/bin/python benchmarks/depth_eval.py --data DIR [--quick]
+    .venv/bin/python benchmarks/depth_eval.py --data DIR [--other-patient ID] [--quick]
 
-DIR holds rendered sequences in the pipeline layout (rgb/, depth/, calibration/,
-metadata/render.json): ``DIR/patient_000/sequence_000`` (the default phantom,
-the training patient) and, for the other-anatomy rows, ``DIR/<mask
-patient>/sequence_000`` (a patient built from a shared real airway mask).
-They were made with the pipeline itself, RGB and depth only::
-
-    room stage render --patient patient_000/sequence_000 output_dir=DIR 'render.modalities=[rgb,depth]'
-        # (anatomy + trajectory of patient_000 from the default `dvc repro`)
-    room run --patient medmpd_1 patients=shared_masks output_dir=DIR 'sequences=[sequence_000]' \\
-        render.frame_stride=2 'render.modalities=[rgb,depth]'
+DIR is a COPY of a rendered default run (``cp -al data/output /scratch/output``: the stages run here write
+their outputs into it): ``DIR/patient_000/sequence_000`` (the default phantom, the training patient) and, for
+the other-anatomy rows, ``DIR/<other patient>/sequence_000`` (default: ``patient_001``, the default run's
+second phantom seed, else ``medmpd_1`` when present: a patient built from a shared real airway mask, e.g.
+``room run --patient medmpd_1 patients=shared_masks output_dir=DIR 'sequences=[sequence_000]'``).
+Frames are read as the stages read them (``depth.input``: the noisy RGB by default).
 
 Writes benchmarks/results/depth_eval.{json,md}:
   1. physics baseline: how to treat the unknown cosine (unit, iterated 1-3 times, the cosine of the
-     ground-truth depth as an upper bound), metric and median-scaled, on the first 100 frames;
-  2. the train_depth stage with the default config (+ the mask patient as other anatomy): time,
+     ground-truth depth as an upper bound), metric and median-scaled, on every ``depth.frame_stride``-th
+     frame of the whole sequence (``--quick``: every 5th of those);
+  2. the train_depth stage with the default config (+ the other patient as other anatomy): time,
      before / after on every dataset (Table III);
-  3. the evaluate_depth stage on 100 frames of the training sequence and on the other-anatomy
-     sequence: each method's accuracy next to its seconds per frame (Table II), and the stage's
-     wall time against the 2-minute target; with the full sequence too unless --quick.
+  3. the evaluate_depth stage at the default protocol (whole sequence, every ``depth.frame_stride``-th frame)
+     on the training sequence and on the other-anatomy sequence: each method's accuracy next to its seconds
+     per frame (Table II), and the stage's wall and CPU time; without ``--quick`` also the training sequence at
+     every frame (against the stride: what the stride costs in accuracy) and the Hugging Face architectures'
+     speed with random weights.
 """
 from __future__ import annotations
 
@@ -47,7 +46,7 @@ from room_pipeline.depth.physics import (LightModel, PhysicsParams, _log_distanc
 RESULTS = ROOT / "benchmarks" / "results"
 
 
-def config(data: Path, mask_patients: list[str], **depth) -> OmegaConf:
+def config(data: Path, others: list[str], **depth) -> OmegaConf:
     base = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "depth" / "default.yaml"))
     for k, v in depth.items():
         if isinstance(v, dict):
@@ -55,13 +54,19 @@ def config(data: Path, mask_patients: list[str], **depth) -> OmegaConf:
         else:
             base[k] = v
     patients = {"patient_000": {"kind": "ct", "input": str(data / "patient_000" / "input" / "ct.nii.gz")}}
-    patients.update({q: {"kind": "mask", "input": "../shared/data/airway_masks"} for q in mask_patients})
+    phantoms = {"patient_000": {"seed": 0}}
+    for q in others:
+        if q.startswith("patient_"):        # a phantom seed of the default run
+            patients[q] = {"kind": "ct", "input": str(data / q / "input" / "ct.nii.gz")}
+            phantoms[q] = {"seed": int(q.split("_")[-1])}
+        else:
+            patients[q] = {"kind": "mask", "input": "../shared/data/airway_masks"}
     return OmegaConf.create({"output_dir": str(data), "sequences": ["sequence_000"],
-                             "phantoms": {"patient_000": {"seed": 0}}, "patients": patients, "depth": base})
+                             "phantoms": phantoms, "patients": patients, "depth": base})
 
 
-def physics_variants(seq: Path, n: int, stride: int = 1) -> list[dict]:
-    samples = sequence_samples(seq, stride=stride, max_frames=n)
+def physics_variants(seq: Path, stride: int, folder: str) -> list[dict]:
+    samples = sequence_samples(seq, folder, stride=stride)
     meta = json.loads((seq / "metadata" / "render.json").read_text())["renderer"]
     model = LightModel.from_render_metadata(meta)
     cam = samples[0].camera
@@ -138,14 +143,14 @@ def hf_architecture_speed(seq: Path, tmp: Path, n: int = 3) -> list[dict]:
     return rows
 
 
-def saturation_blocks(seq: Path, block: int = 50) -> list[dict]:
+def saturation_blocks(seq: Path, errors_csv: Path, folder: str, block: int = 50) -> list[dict]:
     """Per block of frames: the fraction of pixels clipped (code 255) in every channel, and the per-frame AbsRel
-    of the evaluate_depth rows from depth_errors.csv (run it first on the whole sequence)."""
+    of the evaluate_depth rows from its depth_errors.csv (run at frame_stride 1 on the whole sequence)."""
     import csv
 
-    with open(seq / "evaluation" / "depth_errors.csv") as fh:
+    with open(errors_csv) as fh:
         rows = list(csv.DictReader(fh))
-    samples = sequence_samples(seq)
+    samples = sequence_samples(seq, folder)
     clipped = np.array([float((s.load_rgb() == 255).all(axis=-1).mean()) for s in samples])
     cols = [c for c in rows[0] if c.endswith("_AbsRel")]
     out = []
@@ -160,15 +165,18 @@ def saturation_blocks(seq: Path, block: int = 50) -> list[dict]:
 
 
 def run_eval(cfg, key: str) -> dict:
+    from room_pipeline.paths import PatientPaths
     from room_pipeline.stages import evaluate_depth
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     evaluate_depth.run(cfg, key)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     patient, seq = key.split("/")
-    doc = json.loads((Path(cfg.output_dir) / patient / seq / "evaluation" / "depth.json").read_text())
-    print(f"evaluate_depth {key}: {doc['n_frames']} frames in {wall:.1f} s", flush=True)
-    return {"key": key, "frames": doc["n_frames"], "wall_s": wall, "methods": doc["methods"]}
+    ev = PatientPaths(Path(cfg.output_dir), patient).evaluation(seq)          # <output_dir>/evaluation/<p>/<s>/
+    doc = json.loads((ev / "depth.json").read_text())
+    print(f"evaluate_depth {key}: {doc['n_frames']} frames in {wall:.1f} s ({cpu:.1f} CPU s)", flush=True)
+    return {"key": key, "frames": doc["n_frames"], "stride": int(cfg.depth.frame_stride), "wall_s": wall,
+            "cpu_s": cpu, "methods": doc["methods"], "errors_csv": str(ev / "depth_errors.csv")}
 
 
 def fmt(x, nd=3) -> str:
@@ -182,9 +190,8 @@ def markdown(res: dict) -> str:
          f"Data: {res['data_note']}", "",
          "Metrics: frame-averaged over pixels with ground truth in [1, 200] mm; 'median' = one scale per "
          "sequence, median(gt)/median(pred). L1 and RMSE in mm.", ""]
-    L += ["## 1. Physics baseline: the unknown cosine", "",
-          "The first 100 frames of patient_000/sequence_000 and every 4th rendered frame of the mask patient's "
-          "sequence (600x600, fast renderer).", "",
+    L += ["## 1. Physics baseline (ORACLE: reads the renderer's light model): the unknown cosine", "",
+          "Whole sequences, every n-th frame (frames column), 600x600, input as depth.input.", "",
           "| sequence | frames | variant | metric AbsRel | metric delta1 | metric L1 | median AbsRel | median delta1 | "
           "median L1 | median scale | s/frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["physics"]:
@@ -215,7 +222,8 @@ def markdown(res: dict) -> str:
         L.append(f"- {ph}: " + ", ".join(f"{v:.3f}" for v in curve))
     L += ["", "## 3. Speed against error (stage evaluate_depth) -- Table II", ""]
     for ev in res["evaluations"]:
-        L += [f"### {ev['key']}: {ev['frames']} frames, stage wall time {ev['wall_s']:.1f} s", "",
+        L += [f"### {ev['key']}: {ev['frames']} frames (the whole sequence, frame_stride {ev['stride']}), stage wall "
+              f"time {ev['wall_s']:.1f} s, CPU {ev['cpu_s']:.1f} s", "",
               "| method | scaling | AbsRel | delta1 | L1 (mm) | RMSE (mm) | s/frame | CPU s/frame | note |",
               "|---|---|---|---|---|---|---|---|---|"]
         for name, m in ev["methods"].items():
@@ -229,62 +237,68 @@ def markdown(res: dict) -> str:
         L.append("")
     L += ["### Hugging Face architectures with random weights (speed only, through the adapter)", "",
           "No pretrained weights can be downloaded here, so these rows give the cost of the real architectures, "
-          "not their accuracy.", "", "| architecture | parameters | torch threads | s/frame (600x600 input) | "
+          "not their accuracy (not measured with --quick).", "",
+          "| architecture | parameters | torch threads | s/frame (600x600 input) | "
           "s per 100 frames |", "|---|---|---|---|---|"]
-    for r in res["hf_speed"]:
+    for r in res.get("hf_speed") or []:
         L.append(f"| {r['architecture']} | {r['n_parameters']} | {r['threads']} | {r['seconds_per_frame']:.2f} | "
                  f"{r['seconds_per_100_frames']:.0f} |")
     L.append("")
     if res.get("saturation"):
         sat = res["saturation"]
         cols = [c for c in sat[0] if c.endswith("_AbsRel")]
-        L += ["### Why the whole sequence scores worse than its first 100 frames", "",
-              "The exposure is fixed for a sequence from its first frame (render.exposure_ev null); deeper in the tree "
-              "the walls come closer and clip to white.  Fraction of pixels clipped in all three channels and the "
-              "mean per-frame AbsRel of each row (median rows use the whole sequence's single scale), per block of "
-              "patient_000/sequence_000:", "",
+        L += ["### Along the route: clipping and error per block of frames", "",
+              "Fraction of pixels clipped in all three channels and the mean per-frame AbsRel of each row (median "
+              "rows use the whole sequence's single scale), per block of patient_000/sequence_000 (every frame):", "",
               "| frames | clipped | " + " | ".join(c[:-len("_AbsRel")] for c in cols) + " |",
               "|---|---|" + "---|" * len(cols)]
         for r in sat:
             L.append(f"| {r['frames']} | {r['clipped_fraction']:.3f} | " + " | ".join(fmt(r[c]) for c in cols) + " |")
         L.append("")
-    t = res["target"]
-    L += ["## 100-frame target", "",
-          f"evaluate_depth on {t['frames']} frames took {t['wall_s']:.1f} s "
-          f"(target < 120 s: {'met' if t['wall_s'] < 120 else 'NOT met'}).", ""]
     return "\n".join(L) + "\n"
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, type=Path, help="folder with rendered sequences (see the docstring)")
-    ap.add_argument("--mask-patient", default="medmpd_1", help="other-anatomy patient (real mask) in DATA")
-    ap.add_argument("--quick", action="store_true", help="skip the full-sequence evaluation")
+    ap.add_argument("--other-patient", "--mask-patient", dest="other",
+                    help="other-anatomy patient in DATA (default: patient_001, else medmpd_1, when rendered)")
+    ap.add_argument("--quick", action="store_true", help="default protocol only, physics variants on every 5th "
+                                                         "evaluated frame, no Hugging Face speed rows")
     args = ap.parse_args()
     data = args.data.resolve()
     seq = data / "patient_000" / "sequence_000"
+    conf = DepthParams.from_dict(OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "depth" / "default.yaml")))
+    folder = conf.input
     if not (seq / "rgb").is_dir():
         print(f"no rendered sequence at {seq}: see the docstring for how to make it", file=sys.stderr)
         return 2
-    masks = [args.mask_patient] if (data / args.mask_patient / "sequence_000" / "rgb").is_dir() else []
+    if not (seq / folder).is_dir():
+        folder = "rgb"
+    candidates = [args.other] if args.other else ["patient_001", "medmpd_1"]
+    masks = [q for q in candidates if (data / q / "sequence_000" / "rgb").is_dir()][:1]
+    stride = int(conf.frame_stride)
+    n_frames = len(list((seq / "rgb").glob("*.png")))
     res = {"command": "python benchmarks/depth_eval.py " + " ".join(sys.argv[1:]),
            "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores", "load_start": os.getloadavg()[0],
-           "data_note": f"patient_000/sequence_000 ({len(list((seq / 'rgb').glob('*.png')))} frames, 600x600)"
-                        + (f"; {args.mask_patient}/sequence_000 "
-                           f"({len(list((data / args.mask_patient / 'sequence_000' / 'rgb').glob('*.png')))} frames, "
-                           "every 2nd pose)" if masks else "; no mask patient")}
+           "data_note": f"{data}: patient_000/sequence_000 ({n_frames} frames, 600x600, input {folder}/)"
+                        + (f"; {masks[0]}/sequence_000 "
+                           f"({len(list((data / masks[0] / 'sequence_000' / 'rgb').glob('*.png')))} frames)"
+                           if masks else "; no other patient")}
     import torch
     import transformers
 
     res["versions"] = {"torch": str(torch.__version__), "transformers": transformers.__version__,
                        "numpy": np.__version__}
-    res["physics"] = physics_variants(seq, 100)
+    pstride = stride * (5 if args.quick else 1)
+    res["physics"] = physics_variants(seq, pstride, folder)
     if masks:
-        res["physics"] += physics_variants(data / masks[0] / "sequence_000", 100, stride=4)
+        res["physics"] += physics_variants(data / masks[0] / "sequence_000", pstride, folder)
     import tempfile
 
-    with tempfile.TemporaryDirectory() as tmp:
-        res["hf_speed"] = hf_architecture_speed(seq, Path(tmp))
+    if not args.quick:
+        with tempfile.TemporaryDirectory() as tmp:
+            res["hf_speed"] = hf_architecture_speed(seq, Path(tmp))
 
     from room_pipeline.io.metrics import read_metrics_file
     from room_pipeline.stages import train_depth
@@ -304,13 +318,12 @@ def main() -> int:
                          for ph in ("pretrain", "finetune")}
     print(f"train_depth: {wall:.0f} s", flush=True)
 
-    evals = [run_eval(config(data, masks, max_frames=100), "patient_000/sequence_000")]
-    res["target"] = {"frames": evals[0]["frames"], "wall_s": evals[0]["wall_s"]}
+    evals = [run_eval(config(data, masks), "patient_000/sequence_000")]
     if masks:
-        evals.append(run_eval(config(data, masks), f"{args.mask_patient}/sequence_000"))
+        evals.append(run_eval(config(data, masks), f"{masks[0]}/sequence_000"))
     if not args.quick:
-        evals.append(run_eval(config(data, masks), "patient_000/sequence_000"))
-        res["saturation"] = saturation_blocks(seq)
+        evals.append(run_eval(config(data, masks, frame_stride=1), "patient_000/sequence_000"))
+        res["saturation"] = saturation_blocks(seq, Path(evals[-1]["errors_csv"]), folder)
     res["evaluations"] = evals
     res["load_end"] = os.getloadavg()[0]
     RESULTS.mkdir(parents=True, exist_ok=True)

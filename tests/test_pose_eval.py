@@ -461,6 +461,11 @@ def test_evaluate_pose_and_tables_stages(tmp_path, textured):
     assert body["VGGT (paper)"]["RRA@5 (%)"] == "-" and body["colmap"]["paper (published) AUC@30"] == "16.91"
     assert body["identity"]["Beats trivial baselines"] == "(trivial baseline)"
     assert body["colmap"]["Beats trivial baselines"] == "yes"
+    # a registered method left out of evaluate.pose.methods is a row that says so and how to run it
+    assert doc["methods"]["sift_vo"]["run"] is False and "sift_vo" not in metrics
+    assert body["sift_vo"]["Status"].startswith("not run: not in evaluate.pose.methods; run it with -S "
+                                                "'evaluate.pose.methods=[sift_vo,colmap,orb_vo]'")
+    assert body["sift_vo"]["RRA@5 (%)"] == "-" and body["sift_vo"]["Beats trivial baselines"] == "-"
     assert list(csv.reader(io.StringIO((rep / "table_1_pose.csv").read_text())))[0] == head
     tex = (rep / "table_1_pose.tex").read_text()
     assert "\\begin{tabular}" in tex and "RRA@5 (\\%)" in tex and tex.count("\\\\") == len(md)

@@ -379,12 +379,13 @@ def evaluate(estimators: Mapping[str, Estimator], samples: list[Sample], valid_r
                     scalers.setdefault((name, s.group), MedianScaler(valid_range_m)).add(gt, pred)
                     np.save(cache / f"{name}_{k}.npy", np.asarray(raw, dtype=np.float32))
         if median_of:
+            scale_of = {key: sc.scale() for key, sc in scalers.items()}     # once per (method, group)
             for k, s in enumerate(samples):
                 gt = s.load_gt()
                 for row_name, name in median_of.items():
                     est = estimators[name]
                     pred = fit_to_shape(np.load(cache / f"{name}_{k}.npy"), gt.shape, est.resizes)
-                    scale = scalers[(name, s.group)].scale()
+                    scale = scale_of[(name, s.group)]
                     rows[row_name].scales[s.group] = scale
                     rows[row_name].frames.append(frame_errors(gt, pred, valid_range_m, scale=scale if np.isfinite(scale)
                                                               else float("nan")))

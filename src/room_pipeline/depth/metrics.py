@@ -106,9 +106,12 @@ def valid_gt(gt: np.ndarray, valid_range_m: Sequence[float]) -> np.ndarray:
         return np.isfinite(g) & (g >= lo) & (g <= hi)
 
 
-def valid_pixels(gt: np.ndarray, pred: np.ndarray, valid_range_m: Sequence[float]) -> tuple[np.ndarray, int, int]:
-    """(mask of usable pixels, n_nonfinite, n_nonpositive) -- see the module docstring."""
-    g_ok = valid_gt(gt, valid_range_m)
+def valid_pixels(gt: np.ndarray, pred: np.ndarray, valid_range_m: Sequence[float],
+                 g_ok: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
+    """(mask of usable pixels, n_nonfinite, n_nonpositive) -- see the module docstring.  ``g_ok``: the
+    ``valid_gt`` mask when the caller already has it."""
+    if g_ok is None:
+        g_ok = valid_gt(gt, valid_range_m)
     p = np.asarray(pred)
     finite = np.isfinite(p)
     with np.errstate(invalid="ignore"):
@@ -124,8 +127,9 @@ def frame_errors(gt: np.ndarray, pred: np.ndarray, valid_range_m: Sequence[float
     g_all = np.asarray(gt)
     p_all = np.asarray(pred)
     check_shape(g_all.shape, p_all.shape, where)
-    mask, n_nonfinite, n_nonpositive = valid_pixels(g_all, p_all, valid_range_m)
-    n_gt = int(np.count_nonzero(valid_gt(g_all, valid_range_m)))
+    g_ok = valid_gt(g_all, valid_range_m)
+    mask, n_nonfinite, n_nonpositive = valid_pixels(g_all, p_all, valid_range_m, g_ok)
+    n_gt = int(np.count_nonzero(g_ok))
     n = int(np.count_nonzero(mask))
     if n == 0:
         nan = math.nan
@@ -179,7 +183,10 @@ class LogMedian:
             return
         idx = np.floor((np.log(v) - self.log_lo) / self.bin_width).astype(np.int64)
         np.clip(idx, 0, self.n_bins - 1, out=idx)
-        self.counts += np.bincount(idx, minlength=self.n_bins)
+        lo = int(idx.min())             # count over the occupied span only (not a 500k-bin array per call)
+        idx -= lo
+        span = np.bincount(idx)
+        self.counts[lo:lo + span.size] += span
         self.n += v.size
 
     def median(self) -> float:

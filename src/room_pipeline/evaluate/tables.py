@@ -61,6 +61,14 @@ SIMCOL_NOTE = ("Why simcol gets worse after fine-tuning: the network learns the 
                "/ 0.15 against 0.36-0.38 for constant, tube prior and the phantom mean image).")
 
 
+#: why COLMAP is not in the default evaluate.pose.methods (measured by benchmarks/pose_eval.py)
+COLMAP_NOTE = ("COLMAP (careful setup: denoise + CLAHE, SIFT threshold chosen by verified matches, sequential "
+               "matching, bundle adjustment) is off by default: on the default run it scores below the "
+               "constant_forward baseline on the same frames while costing more CPU time than both VO methods "
+               "together, so it would spend the evaluation time budget on a row that says nothing; scores and CPU "
+               "seconds: benchmarks/results/pose_eval_quick.md (python benchmarks/pose_eval.py --data DIR --quick).")
+
+
 @dataclasses.dataclass
 class Table:
     """A rendered table: header, string cells, notes under it, and the numbers behind it (for metrics.json)."""
@@ -192,7 +200,9 @@ def aggregate_methods(docs: Sequence[Mapping[str, Any]], keys: Sequence[str], or
             continue
         ok = [r for r in recs if r.get("available", True)]
         reasons = sorted({str(r.get("reason")) for r in recs if not r.get("available", True) and r.get("reason")})
-        agg[m] = {"available": len(ok), "total": len(recs), "reasons": reasons, "mean": mean_records(ok, keys)}
+        not_run = sum(1 for r in recs if r.get("run", True) is False)
+        agg[m] = {"available": len(ok), "total": len(recs), "reasons": reasons, "mean": mean_records(ok, keys),
+                  "not_run": not_run}
     return agg
 
 
@@ -200,6 +210,8 @@ def _status(a: Mapping[str, Any]) -> str:
     if a["available"] == a["total"]:
         return "ok"
     why = "; ".join(a["reasons"]) or "no reason given"
+    if a.get("not_run") == a["total"]:                   # configured off (e.g. colmap by default), not broken
+        return f"not run: {why}"
     if a["available"] == 0:
         return f"unavailable: {why}"
     return f"ran on {a['available']}/{a['total']}; elsewhere unavailable: {why}"
@@ -250,8 +262,12 @@ def pose_table(docs: Sequence[Mapping[str, Any]], digits: int = 2, order: Sequen
     t = _method_table("table_1_pose", "Table I: multi-view pose estimation on ROOM sequences", docs, POSE_COLUMNS,
                       paper.TABLES["table_1_pose"]["columns"], digits, order, "Sequences", missing,
                       POSE_BASELINES, POSE_BETTER)
+    strides = sorted({int(d["input"]["frame_stride"]) for d in docs
+                      if isinstance((d.get("input") or {}).get("frame_stride"), int)})
+    every = (f"every {'/'.join(map(str, strides))}th rendered frame (evaluate.pose.frame_stride; frames 0, k, 2k, ... "
+             "tile the whole route)" if strides else "every frame after evaluate.pose.frame_stride")
     t.notes = [f"Mean over the sequences where the method ran ({len(docs)} evaluated), each scored over its whole "
-               "route (every frame after evaluate.pose.frame_stride, bifurcations and bends included). "
+               f"route ({every}, bifurcations and bends included). "
                "Over all frame pairs i<j: "
                "RRA@5 / RTA@5 = % of pairs with relative-rotation / relative-translation-direction error under "
                "5 deg (translation sign folded, min(a, 180-a)); AUC@30 = mean over 1..30 deg thresholds of the % "
@@ -272,6 +288,10 @@ def pose_table(docs: Sequence[Mapping[str, Any]], digits: int = 2, order: Sequen
                "The paper's Table I and its text disagree on the unit of RTA (0.07 vs \"0.07%\"); published "
                "values are shown exactly as printed, without conversion.",
                paper.NOTE]
+    not_run = [m for m in aggregate_methods(docs, ()).values() if m.get("not_run") and m["not_run"] == m["total"]]
+    if not_run:
+        t.notes.insert(-1, "'not run' rows: registered methods left out of evaluate.pose.methods; the status gives "
+                           "the override that runs them. " + COLMAP_NOTE)
     return t
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import io
 import math
+import time
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -30,6 +31,7 @@ from ..config.compose import section
 from ..depth.estimators import (ORACLES, TRAINED_ON_CHECKPOINT_PATIENT, DepthParams, SequenceInfo, evaluate,
                                 sequence_samples, try_create)
 from ..depth.metrics import METRIC_KEYS, UNITS
+from ..evaluate.allocator import keep_freed_memory
 from ..io.atomic import write_json, write_text
 from .common import StageTimer, _finite, metadata, patient_paths, read_json, round_floats, write_metrics
 from .trajectory import split_key
@@ -82,6 +84,8 @@ def run(cfg: DictConfig, key: str) -> dict:
     p = DepthParams.from_dict(section(cfg, "depth"))
     paths = patient_paths(cfg, patient)
     seq = paths.sequence(sequence)
+    keep_freed_memory()          # full-frame temporaries: no page-fault churn (evaluate/allocator.py)
+    cpu0 = time.process_time()
     with StageTimer() as timer:
         samples = sequence_samples(seq, p.input, p.frame_stride, p.max_frames, group=key)
         render_json = seq / "metadata" / "render.json"
@@ -127,7 +131,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     summary = {name: {k: m.get(k) for k in ("AbsRel", "delta1", "L1_mm", "seconds_per_frame")}
                for name, m in methods.items() if m["available"]}
     metrics = {"frames": len(samples), "methods_available": len(rows), "methods_unavailable": len(unavailable),
-               "wall_time_s": round(timer.wall_s, 3),
+               "wall_time_s": round(timer.wall_s, 3), "cpu_time_s": round(time.process_time() - cpu0, 3),
                "seconds_per_frame_all_methods": round(timer.wall_s / len(samples), 4),
                "peak_rss_mb": round(timer.peak_rss_mb(), 1), "methods": round_floats(summary, 6)}
     write_metrics(paths, f"evaluate_depth_{sequence}", metrics)

@@ -30,6 +30,7 @@ from ..config.compose import section
 from ..config.params import params_from_dict
 from ..errors import ConfigError, InputError
 from ..evaluate import pose_methods as pm
+from ..evaluate.allocator import keep_freed_memory
 from ..anatomy.centreline import CentrelineGraph
 from ..evaluate.pose_metrics import per_frame_errors, pose_metrics, segment_scores
 from ..evaluate.route_segments import label_frames
@@ -132,7 +133,8 @@ def load_sequence(seq: Path, p: PoseEvalParams) -> tuple[list[np.ndarray], np.nd
     if (w, h) != (cam.width, cam.height):
         raise InputError(f"{src}: images are {w}x{h} but {calib_json} says {cam.width}x{cam.height}")
     images, K = pm.downscale(images, cam.K, p.downscale)
-    info = {"image_dir": src.name, "frames": [int(k) for k in sel], "n_frames": len(sel),
+    info = {"image_dir": src.name, "frame_stride": p.frame_stride, "frames": [int(k) for k in sel],
+            "n_frames": len(sel), "rendered_frames": len(frames),
             "image_size": [int(images[0].shape[1]), int(images[0].shape[0])], "downscale": p.downscale,
             "K": np.round(K, 9).tolist()}
     return images, K, np.stack(poses), info
@@ -148,12 +150,12 @@ def evaluate_methods(images: list[np.ndarray], K: np.ndarray, poses_gt: np.ndarr
         method = pm.get_method(str(name))
         ok, reason = method.availability(mp)
         if not ok:
-            results[name] = {"available": False, "reason": reason}
+            results[name] = {"available": False, "run": True, "reason": reason}
             continue
         res = method.estimate(images, K, mp)
         m = pose_metrics(poses_gt, res.poses_c2w, res.registered, p.rra_threshold_deg, p.auc_max_deg)
         cpu = res.info.get("cpu_seconds")
-        results[name] = {"available": True, "reason": None, "baseline": bool(getattr(method, "baseline", False)),
+        results[name] = {"available": True, "run": True, "reason": None, "baseline": bool(getattr(method, "baseline", False)),
                          **m, "seconds": res.seconds, "seconds_per_frame": res.seconds / len(images),
                          "cpu_seconds_per_frame": (cpu / len(images)) if cpu is not None else None,
                          "info": res.info}
@@ -161,7 +163,17 @@ def evaluate_methods(images: list[np.ndarray], K: np.ndarray, poses_gt: np.ndarr
             results[name]["segments"] = segment_scores(poses_gt, res.poses_c2w, res.registered, labels,
                                                        p.rra_threshold_deg, p.auc_max_deg)
         curves[name] = per_frame_errors(poses_gt, res.poses_c2w, res.registered)
+    for name in pm.METHODS:             # a registered method left out is a row saying so, not a missing row
+        if name not in results:
+            results[name] = {"available": False, "run": False, "reason": not_run_reason(name, p)}
     return results, curves
+
+
+def not_run_reason(name: str, p: PoseEvalParams) -> str:
+    """Why a registered method has no numbers: it is not in ``evaluate.pose.methods``, and how to run it."""
+    methods = ",".join([name] + [str(m) for m in p.methods])
+    return (f"not in evaluate.pose.methods; run it with -S 'evaluate.pose.methods=[{methods}]' (dvc exp run) "
+            f"or 'evaluate.pose.methods=[{methods}]' (room run)")
 
 
 def errors_csv(frames: list[int], curves: Mapping[str, dict]) -> str:
@@ -196,6 +208,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     p = PoseEvalParams.from_dict((section(cfg, "evaluate") or {}).get("pose"))
     paths = patient_paths(cfg, patient)
     seq = paths.sequence(sequence)
+    keep_freed_memory()          # per-frame temporaries: no page-fault churn (evaluate/allocator.py)
     cpu0 = time.process_time()
     with StageTimer() as timer:
         images, K, poses_gt, info = load_sequence(seq, p)

@@ -43,6 +43,7 @@ from ..depth.cnn import (CNNEstimator, build_model, checkpoint_path, dataset_fro
                          train_steps)
 from ..depth.estimators import DepthParams, evaluate, sequence_samples
 from ..errors import BackendUnavailable, InputError
+from ..evaluate.allocator import keep_freed_memory
 from ..depth.baselines import TRAIN_MEAN_FILE
 from ..io.atomic import write_bytes, write_json, write_text
 from .common import StageTimer, _finite, metadata, patient_paths, round_floats, write_metrics
@@ -136,6 +137,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
     paths = patient_paths(cfg, patient)
     model_dir = paths.root / "depth_model"
     rng_m = p.valid_range_m
+    keep_freed_memory()          # full-frame temporaries: no page-fault churn (evaluate/allocator.py)
     cpu0 = time.process_time()
     with StageTimer() as timer:
         train_samples, held, sources = [], [], []
