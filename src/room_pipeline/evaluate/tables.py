@@ -50,15 +50,18 @@ DEPTH_BASELINES = ("constant", "train_mean", "tube_prior")
 DEPTH_COLUMNS = (("L1_mm", "L1 (mm)", "num"), ("AbsRel", "AbsRel", "num"), ("RMSE_mm", "RMSE (mm)", "num"),
                  ("delta1", "delta1 (%)", "pct"), ("seconds_per_frame", "Time (s/frame)", "time"))
 FINETUNE_COLUMNS = DEPTH_COLUMNS[:4]
-#: why the SimCol rows get worse after fine-tuning (measured by benchmarks/simcol_transfer.py)
-SIMCOL_NOTE = ("Why simcol gets worse after fine-tuning: the network learns the phantom airway's average "
-               "depth layout, which colon views do not share. benchmarks/simcol_transfer.py measures it: the "
-               "Pearson r of the CNN's log depth with the phantom's mean training depth image rises from 0.59 "
-               "(before) to 0.78 (after) on the SimCol frames while its r with the SimCol ground truth falls from "
-               "0.956 to 0.933; SimCol's colours (mean sRGB 200/129/83) are also far from the phantom's "
-               "(163/141/145), which the synthetic-tube pretraining (random tissue colours) covered and fine-tuning "
-               "on one phantom narrows. Both CNN rows still beat the image-blind baselines on simcol (AbsRel 0.12 "
-               "/ 0.15 against 0.36-0.38 for constant, tube prior and the phantom mean image).")
+#: what fine-tuning does to SimCol (measured by benchmarks/simcol_transfer.py on the default run's checkpoints)
+SIMCOL_NOTE = ("SimCol after fine-tuning (benchmarks/simcol_transfer.py on the default run's checkpoints): "
+               "L1 improves slightly (3.38 -> 3.27 mm) while AbsRel, RMSE and delta1 get slightly worse "
+               "(0.122 -> 0.125, 7.30 -> 7.68 mm, 86.3 -> 84.4 %). The network learns part of the phantom "
+               "airway's average depth layout, which colon views do not share: the Pearson r of its log depth "
+               "with the phantom's mean training depth image rises from 0.67 (before) to 0.76 (after) on the "
+               "SimCol frames while its r with the SimCol ground truth stays 0.957 -> 0.954. SimCol's colours "
+               "(mean sRGB 200/129/83) differ from the phantom's training frames (152/102/109), which the "
+               "synthetic-tube pretraining (random tissue colours) covered. Both CNN rows beat the image-blind "
+               "baselines on simcol by far (AbsRel 0.12 / 0.13 against 0.34-0.38 for constant, tube prior and the "
+               "phantom mean image). On the renders before this round's appearance model, fine-tuning made SimCol "
+               "clearly worse (L1 3.46 -> 4.05 mm; r with the mean image 0.59 -> 0.78).")
 
 
 #: why COLMAP is not in the default evaluate.pose.methods (measured by benchmarks/pose_eval.py)
