@@ -1,6 +1,7 @@
 """Monocular depth: metrics and their hard cases, physics baseline, registry, external/HF adapters, CNN, stages."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -185,6 +186,19 @@ def test_light_model_from_both_metadata_layouts():
     assert LightModel.from_render_metadata(cycles).exposure_ev == 1.5
     with pytest.raises(InputError, match="light model"):
         LightModel.from_render_metadata({"backend": "x"})
+
+
+def test_light_model_takes_each_frames_exposure_when_the_run_meters_per_frame():
+    """With per-frame automatic exposure the physics baseline must undo each frame's own EV (render.json
+    film.frame_ev), not the first frame's: on the default run the exposure drifts by > 5 EV along a sequence."""
+    meta = {"material": dataclasses.asdict(TissueMaterial()), "light": dataclasses.asdict(TipLight()),
+            "exposure_ev": -0.4, "film": {"frame_ev": [-0.25, -2.5, -5.0]}}
+    m = LightModel.from_render_metadata(meta)
+    assert [m.at_frame(i).exposure_ev for i in range(3)] == [-0.25, -2.5, -5.0]
+    fixed = LightModel.from_render_metadata({k: v for k, v in meta.items() if k != "film"})
+    assert fixed.at_frame(2).exposure_ev == -0.4
+    with pytest.raises(InputError, match="frame 3 has no exposure"):
+        m.at_frame(3)
 
 
 def test_physics_depth_recovers_metric_depth_with_true_cosines():

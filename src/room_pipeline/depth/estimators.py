@@ -179,10 +179,11 @@ class PhysicsEstimator(Estimator):
         self.name, self.params, self.model = name, params, model
 
     def predict(self, frame: Frame) -> np.ndarray:
-        return physics_depth(frame.rgb, frame.camera, self.model, self.params)
+        return physics_depth(frame.rgb, frame.camera, self.model.at_frame(frame.index), self.params)
 
     def describe(self) -> dict:
         return {"params": dataclasses.asdict(self.params), "exposure_ev": self.model.exposure_ev,
+                "exposure": "per frame (render.json film.frame_ev)" if self.model.frame_ev else "fixed",
                 "light": dataclasses.asdict(self.model.light), "material": dataclasses.asdict(self.model.material),
                 "light_coaxial": light_is_coaxial(self.model)}
 

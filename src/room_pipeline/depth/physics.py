@@ -57,6 +57,18 @@ class LightModel:
     material: TissueMaterial
     light: TipLight
     exposure_ev: float
+    #: per-frame exposures (EV) of a run with automatic per-frame exposure (render.json film.frame_ev), indexed
+    #: by the frame's index in its sequence; None: ``exposure_ev`` holds for every frame
+    frame_ev: tuple[float, ...] | None = None
+
+    def at_frame(self, index: int) -> "LightModel":
+        """The model with the exposure of frame ``index`` (the same model when the exposure is fixed)."""
+        if self.frame_ev is None:
+            return self
+        if not 0 <= index < len(self.frame_ev):
+            raise InputError(f"frame {index} has no exposure in render.json (film.frame_ev holds "
+                             f"{len(self.frame_ev)} frames)")
+        return dataclasses.replace(self, exposure_ev=float(self.frame_ev[index]), frame_ev=None)
 
     @staticmethod
     def from_render_metadata(renderer: Mapping[str, Any]) -> "LightModel":
@@ -68,7 +80,10 @@ class LightModel:
         try:
             mat = {k: (tuple(v) if isinstance(v, list) else v) for k, v in geo["material"].items()}
             light = {k: (tuple(v) if isinstance(v, list) else v) for k, v in geo["light"].items()}
-            return LightModel(TissueMaterial(**mat), TipLight(**light), float(ev))
+            film = geo.get("film") or {}
+            frame_ev = film.get("frame_ev") if "rgb" not in renderer else renderer["rgb"].get("frame_ev")
+            frame_ev = tuple(float(e) for e in frame_ev) if frame_ev else None
+            return LightModel(TissueMaterial(**mat), TipLight(**light), float(ev), frame_ev)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError("render metadata has no usable light model (material, light, exposure_ev): "
                              f"{exc}") from None
