@@ -221,8 +221,12 @@ def _trace(field: _Field, start: np.ndarray, h: float, max_steps: int, params: M
         desc = (vn[:, 0] - v[:, 0]) / h
         gnn = vn[:, 1:] / np.maximum(np.linalg.norm(vn[:, 1:], axis=1), 1e-12)[:, None]
         turn = np.einsum("ij,ij->i", n, gnn)
-        hit = ok & ((desc > -params.min_descent) | (turn < cos_flip))
-        stuck = ~ok
+        # a path that leaves the grid (an airway cut by the volume border: the SDF continues the lumen past
+        # it, where the clamped lookup is flat) ends there without a medial point; else the trachea's open end
+        # sprouts medial points outside the volume that become the root
+        gone = np.any((xn < 0.0) | (xn > field.shape - 1.0), axis=1)
+        hit = ok & ~gone & ((desc > -params.min_descent) | (turn < cos_flip))
+        stuck = ~ok | gone
         if hit.any():
             # lowest SDF of: last position, mid-step, new position
             xm = 0.5 * (x[hit] + xn[hit])
