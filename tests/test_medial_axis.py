@@ -416,3 +416,34 @@ def test_root_is_the_flattened_tracheas_cut_end():
     assert g.root.points[0][2] > top - 3 * MM, res.report
     assert g.root.radius[:5].min() > 3.5 * MM, res.report          # starts on the sheet, not in a crease
     assert g.root.length > 30 * MM and len(g.children(g.root.id)) >= 2
+
+
+def test_root_arms_tell_a_parallel_line_from_a_way_out():
+    """The measure behind CASE073's fix (issue #18): from a root on the trachea's axis, a second skeleton line
+    running beside the axis 5 mm away (a flattened trachea's medial sheet, a crease) stays within the
+    pruning length of the main arm, while a stretch of trachea above a mid-tube root leaves it."""
+    from room_pipeline.anatomy.medial_axis import _root_arms
+
+    down = [(0.0, 0.0, -k) for k in range(1, 41)]                   # main arm: 40 mm down the axis, r 7 mm
+    side = [(5.0, 0.0, -k) for k in range(1, 19)]                   # a parallel line, 18 mm, thinning
+    up = [(0.0, 0.0, k) for k in range(1, 21)]                      # 20 mm of trachea above the root
+    pts = np.array([(0.0, 0.0, 0.0)] + down + side + up) * MM
+    rad = np.array([7.0] + [7.0] * 40 + list(np.linspace(6.5, 0.6, 18)) + [6.5] * 20) * MM
+    n = len(pts)
+    parent = np.full(n, -1)
+    parent[1] = 0
+    parent[2:41] = np.arange(1, 40)
+    parent[41] = 0
+    parent[42:59] = np.arange(41, 58)
+    parent[59] = 0
+    parent[60:] = np.arange(59, n - 1)
+    dist = np.zeros(n)
+    for i in range(1, n):
+        dist[i] = dist[parent[i]] + np.linalg.norm(pts[i] - pts[parent[i]])
+    arms = _root_arms(0, np.ones(n, bool), parent, dist, pts, rad, 3.5 * MM)
+    keep = 1.5 * 7.0 * MM                                            # prune_factor x root radius
+    (L_d, W_d, F_d), (L_s, W_s, F_s), (L_u, W_u, F_u) = arms[1], arms[41], arms[59]
+    assert L_d == pytest.approx(40 * MM) and F_d == np.inf
+    assert L_s == pytest.approx((17 + np.sqrt(26)) * MM) and W_s >= keep   # long and wide enough ...
+    assert F_s == pytest.approx(5 * MM) and F_s < keep                # ... but never leaves the main arm
+    assert W_u == pytest.approx(20 * MM) and F_u == pytest.approx(21 * MM) and F_u >= keep   # to the axis below
