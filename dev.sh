@@ -55,6 +55,10 @@ setup_python() {
     "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade "pip>=23" setuptools wheel
     "$VENV/bin/python" -m pip install -q --disable-pip-version-check --find-links "$WHEELS" -c constraints.txt \
         -e ".[$extras]"
+    if [[ "$extras" == *ml* ]]; then   # TotalSegmentator's network classes; --no-deps: timm would pull another torch
+        "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps -c constraints.txt \
+            dynamic-network-architectures
+    fi
     echo "$want" > "$stamp"
 }
 

@@ -51,7 +51,9 @@ STAGES = {
     "validate_centreline": ("${phantoms}", [f"{P}/ground_truth", f"{P}/anatomy/centreline_graph.json"],
                             ["medial_axis"], [], f"{P}/metrics/centreline_validation.json"),
     "trajectory": (MATRIX, [f"{Q}/anatomy/centreline_graph.json", f"{Q}/anatomy/sdf.nii.gz"],
-                   ["trajectory", "sequences"],
+                   # the patient entry: its optional start_pose file (a DVC matrix cannot declare a per-item optional
+                   # file dep, iterative/dvc#10094; trajectory.json records the file's sha256)
+                   ["trajectory", "sequences", "patients.${item.patient}"],
                    [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/{S}/metadata/timestamps.json",
                     f"{Q}/{S}/metadata/trajectory_tum.txt"], f"{Q}/metrics/trajectory_{S}.json"),
     "simulate": (MATRIX, [f"{Q}/{S}/metadata/trajectory.json", f"{Q}/anatomy/collision_model.obj",

@@ -24,13 +24,9 @@ from .conftest import REPO, SHARED_DATA
 
 pytestmark = [pytest.mark.slow, pytest.mark.shared]
 
-#: the two masks that do not get through yet fail in the test log with their `room: error:` line (issue #18 open):
-#: CASE073's planner finds no route that keeps clearance and curvature to the default target branch, CASE091's
-#: widest region has no free end (no trachea-like root).  Both run, so a fix turns them into XPASS.
-_OPEN = "issue #18: does not get through every stage yet (see the room_run.log quoted in the failure)"
-MASKS = ["medmpd_1", "medmpd_2", "medmpd_3", "airquant_demo", "atm_001",
-         pytest.param("case073", marks=pytest.mark.xfail(reason="trajectory: " + _OPEN, strict=False)),
-         pytest.param("case091", marks=pytest.mark.xfail(reason="medial_axis: " + _OPEN, strict=False))]
+#: CASE073 (flattened trachea cut by the scan's top) and CASE091 (trachea cut by the scan's top) failed at
+#: medial_axis / trajectory until the root rules of issue #18 (anatomy/medial_axis.py); all seven now run.
+MASKS = ["medmpd_1", "medmpd_2", "medmpd_3", "airquant_demo", "atm_001", "case073", "case091"]
 FRAMES = 30
 OVERRIDES = ["patients=shared_masks", f"render.max_frames={FRAMES}", "render.width=192", "render.height=192",
              "depth.methods=[physics]",

@@ -352,3 +352,16 @@ def test_headless_chromium_loads_every_image_without_console_messages(tmp_path, 
     img = cv2.imread(str(shot))
     assert img.shape == (2000, 1280, 3)
     assert (img < 200).any(axis=2).mean() > 0.02          # not a blank page: text and images drawn
+
+
+def test_summary_row_says_how_far_from_the_target_the_scope_stopped_and_why(tmp_path):
+    """Issue #18: a route that ends short of its target (Med-MPD's nodule outside the lumen, a narrowing)."""
+    from room_pipeline.report.html import _sequence_row
+
+    meta = tmp_path / "p" / "sequence_000" / "metadata"
+    meta.mkdir(parents=True)
+    (meta / "trajectory.json").write_text(json.dumps({
+        "frames": [{"pose": np.eye(4).tolist()}] * 3, "summary": {"length_m": 0.0421},
+        "target": {"reached": False, "stop_distance": 0.01234, "stop_reason": "lumen_narrower_than_scope"}}))
+    row = _sequence_row(meta.parent)
+    assert "stopped 12.3 mm from the target (lumen_narrower_than_scope)" in row[2], row

@@ -422,3 +422,17 @@ def test_target_outside_lumen_says_how_far_and_why():
     assert tr.target.stop_reason == "lumen_narrower_than_scope" and tr.target.stop_distance > 0.01
     tr = plan_path(graph, 1, tree, TrajectoryParams())
     assert tr.target.reached and tr.target.stop_reason == "reached" and tr.target.stop_distance < 1e-6
+
+
+def test_start_direction_is_the_first_stretch_not_a_hooked_first_point():
+    """Issue #18 (CASE091): where the scan cuts the trachea its centreline's first point bends toward the cut's
+    rim; the start direction was fixed along that first 0.5 mm (124 1/m needed to turn down the trachea: no
+    reachable point).  It is now the chord over the route's first two lumen radii."""
+    tree = chain_tree([(0, (0, 0, -1), 0.03, 5e-3), (0, rotate_towards((0, 0, -1), (1, 0, 0), 40), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    P = graph.root.points
+    P[0] = P[1] + np.array([1.0e-3, 0.0, 0.3e-3])      # the first point 1 mm sideways of the axis
+    tr = plan_path(graph, 1, tree, TrajectoryParams(unreachable="error"))
+    check_trajectory(tr, lambda p: tree.sdf(p)[0])
+    view = tr.poses[0][:3, 2]
+    assert view[2] < -0.9                              # looking down the trachea from the first frame

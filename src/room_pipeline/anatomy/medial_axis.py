@@ -221,8 +221,12 @@ def _trace(field: _Field, start: np.ndarray, h: float, max_steps: int, params: M
         desc = (vn[:, 0] - v[:, 0]) / h
         gnn = vn[:, 1:] / np.maximum(np.linalg.norm(vn[:, 1:], axis=1), 1e-12)[:, None]
         turn = np.einsum("ij,ij->i", n, gnn)
-        hit = ok & ((desc > -params.min_descent) | (turn < cos_flip))
-        stuck = ~ok
+        # a path that leaves the grid (an airway cut by the volume border: the SDF continues the lumen past
+        # it, where the clamped lookup is flat) ends there without a medial point; else the trachea's open end
+        # sprouts medial points outside the volume that become the root
+        gone = np.any((xn < 0.0) | (xn > field.shape - 1.0), axis=1)
+        hit = ok & ~gone & ((desc > -params.min_descent) | (turn < cos_flip))
+        stuck = ~ok | gone
         if hit.any():
             # lowest SDF of: last position, mid-step, new position
             xm = 0.5 * (x[hit] + xn[hit])
@@ -425,22 +429,44 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
             radii = params.invalidation_scale * rad[path_arr] + params.invalidation_voxels * voxel
             for lst in kd.query_ball_point(pts[path_arr], radii):
                 valid[lst] = False
-        return in_skel, skel_parent, n_paths
+        return in_skel, skel_parent, n_paths, dist
 
-    in_skel, skel_parent, n_paths = skeleton(root)
+    in_skel, skel_parent, n_paths, dist = skeleton(root)
     # The root must be an end of the skeleton (the trachea's free end).  When the most superior wide point is
     # not one (trachea cut just above the carina, flattened or touching the border: the skeleton leaves it in
     # two directions), the route would start with a zero-length root branch: re-root at the most superior
     # skeleton end that is still wide (radius >= half the candidate's), else at the most superior end.
-    n_children = np.bincount(skel_parent[skel_parent >= 0], minlength=M)
+    # The candidate's arms (skeleton subtrees from it) are weighed by their *wide length*: how far each runs
+    # from the root through points at least half the root's radius wide.  Two wide arms: the candidate is
+    # mid-tube (a flattened or narrowed trachea, a scan cut just above the carina): re-root at the most
+    # superior skeleton end that is still wide (radius >= half the candidate's), else the most superior end.
+    # An arm that never leaves the longest arm's lumen (farther than that length from it) is a parallel line
+    # on the medial sheet of a flattened trachea, not a way out.  One wide arm: the candidate is the free end,
+    # and the arms beside it (such parallel lines, creases of the wall, rim points of a border cut) are cut
+    # off, so the root branch is the trachea.
     rep["root_reselected"] = False
+    arms = _root_arms(root, in_skel, skel_parent, dist, pts, rad, 0.5 * float(rad[root]))
+    keep_len = params.prune_factor * float(rad[root])
+    wide_arms = [a for a, (_, w, far) in arms.items() if w >= keep_len and far >= keep_len]
+    rep["root_arms"] = len(arms)
+    rep["root_thin_arms_cut"] = 0
+    if len(wide_arms) == 1 and len(arms) > 1:
+        thin = np.zeros(M, dtype=bool)
+        thin[[a for a in arms if a not in wide_arms]] = True
+        for n in np.flatnonzero(in_skel)[np.argsort(dist[in_skel], kind="stable")]:
+            if skel_parent[n] >= 0 and thin[skel_parent[n]]:
+                thin[n] = True
+        in_skel &= ~thin
+        skel_parent[thin] = -1
+        rep["root_thin_arms_cut"] = len(arms) - 1
+    n_children = np.bincount(skel_parent[skel_parent >= 0], minlength=M)
     if n_children[root] >= 2:
         ends = np.flatnonzero(in_skel & (n_children == 0))
         wide = ends[rad[ends] >= 0.5 * rad[root]]
         cand = wide if len(wide) else ends
         if len(cand):
             root = int(cand[np.argmax(pts[cand, 2])])
-            in_skel, skel_parent, n_paths = skeleton(root)
+            in_skel, skel_parent, n_paths, _ = skeleton(root)
             rep["root_reselected"] = True
     rep["n_paths"] = n_paths
     rep["root_point_m"] = pts[root].round(6).tolist()
@@ -577,6 +603,40 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     if rep["loops_broken"]:
         log.warning("medial axis: broke %d loop(s) in the lumen to make a tree", rep["loops_broken"])
     return graph, rep
+
+
+def _root_arms(root: int, in_skel: np.ndarray, parent: np.ndarray, dist: np.ndarray, pts: np.ndarray,
+               rad: np.ndarray, wide_radius: float) -> dict[int, tuple[float, float, float]]:
+    """For each skeleton child of ``root`` (an arm: the subtree through it), metres: the longest path from the
+    root through it; the longest such path whose points from the root on all have radius >= ``wide_radius``;
+    the largest distance of its points from the longest arm (inf for that arm)."""
+    nodes = np.flatnonzero(in_skel)
+    nodes = nodes[np.argsort(dist[nodes], kind="stable")]        # parents before children
+    arc = np.zeros(len(pts))
+    arm = np.full(len(pts), -1, dtype=np.int64)
+    wide = np.zeros(len(pts), dtype=bool)
+    wide[root] = True
+    out: dict[int, list[float]] = {}
+    for n in nodes:
+        p = int(parent[n])
+        if p < 0:
+            continue
+        arc[n] = arc[p] + float(np.linalg.norm(pts[n] - pts[p]))
+        arm[n] = n if p == root else arm[p]
+        wide[n] = wide[p] and rad[n] >= wide_radius
+        o = out.setdefault(int(arm[n]), [0.0, 0.0])
+        o[0] = max(o[0], float(arc[n]))
+        if wide[n]:
+            o[1] = max(o[1], float(arc[n]))
+    if not out:
+        return {}
+    longest = max(out, key=lambda k: out[k][0])
+    kd = cKDTree(pts[arm == longest])
+    res = {}
+    for k, (length, wide_len) in out.items():
+        far = np.inf if k == longest else float(kd.query(pts[arm == k])[0].max())
+        res[k] = (length, wide_len, far)
+    return res
 
 
 def _bridge_components(G, pts: np.ndarray, field: _Field, voxel: float, max_rounds: int = 20):

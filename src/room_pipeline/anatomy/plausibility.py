@@ -238,7 +238,11 @@ def check_mask(vol: Volume, path=None, label: float | None = None, threshold: fl
     if frac > MAX_FOREGROUND_FRACTION:
         raise InputError(f"{where}: the lumen fills {100 * frac:.1f} % of the volume ({n_fg * voxel_ml:.0f} ml): "
                          "an inverted (background = 1) or all-ones mask, not an airway lumen")
-    lab, n = ndi.label(binary, np.ones((3, 3, 3), bool))
+    # components on the lumen's bounding box only (int32 labels of a whole 512x512x700 scan are 0.7 GB)
+    box = tuple(slice(int(np.flatnonzero(binary.any(axis=tuple(b for b in range(3) if b != a)))[0]),
+                      int(np.flatnonzero(binary.any(axis=tuple(b for b in range(3) if b != a)))[-1]) + 1)
+                for a in range(3))
+    lab, n = ndi.label(binary[box], np.ones((3, 3, 3), bool))
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
     keep = int(np.argmax(sizes))
@@ -252,17 +256,21 @@ def check_mask(vol: Volume, path=None, label: float | None = None, threshold: fl
                              "needed to keep it): reconnect the segmentation")
         repairs.append(f"kept the largest of {n} 26-connected pieces ({100 * share:.1f} % of the lumen); "
                        f"dropped {n_fg - kept} voxels in {n - 1} pieces")
-    out = lab == keep
+    sub_keep = lab == keep
     del lab
     volume_ml = kept * voxel_ml
-    idx = np.nonzero(out)
-    lo = np.array([int(i.min()) for i in idx])
-    hi = np.array([int(i.max()) for i in idx]) + 1
+    idx = np.nonzero(sub_keep)
+    off = np.array([b.start for b in box])
+    lo = np.array([int(i.min()) for i in idx]) + off
+    hi = np.array([int(i.max()) for i in idx]) + 1 + off
     del idx
+    out = np.zeros(binary.shape, np.uint8)      # the result, written once (no bool copy of the scan kept)
+    out[box] = sub_keep
+    del sub_keep
     corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
     world = (corners @ vol.affine[:3, :3].T) / MM
     extent = world.max(axis=0) - world.min(axis=0)
-    crop = out[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    crop = out[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(bool)
     report.update({"components": int(n), "kept_voxels": kept, "dropped_voxels": int(n_fg - kept),
                    "lumen_volume_ml": round(volume_ml, 3), "extent_mm": np.round(extent, 1).tolist()})
     if kept < 50 or volume_ml < MIN_VOLUME_ML:
@@ -320,5 +328,4 @@ def check_mask(vol: Volume, path=None, label: float | None = None, threshold: fl
         report["warnings"] = [f"no trachea-calibre tube ({TRACHEA_DIAMETER_MM[0]:g}-{TRACHEA_DIAMETER_MM[1]:g} mm) "
                               f"found at the superior end (longest {header[0]:.0f} mm)"]
     report["repairs"] = repairs
-    data = out.astype(np.uint8)
-    return MaskCheck(Volume(data, vol.affine.copy()), report)
+    return MaskCheck(Volume(out, vol.affine.copy()), report)

@@ -17,8 +17,9 @@ Default method ``region_growing`` needs no trained weights:
    No opening (thin airways survive) and no dilation/closing (branches one
    voxel apart are not bridged).
 
-Method ``totalsegmentator`` calls TotalSegmentator's ``lung_vessels`` task
-(class ``lung_trachea_bronchia``) with locally provided weights.
+Method ``totalsegmentator`` runs TotalSegmentator's ``lung_vessels`` model (class
+``lung_trachea_bronchia``) from locally provided weights: the nnU-Net v2 results folder is read and run by
+:mod:`room_pipeline.anatomy.nnunet` (plans, checkpoint, ``PlainConvUNet``, sliding window).
 
 Units: HU for intensities, millimetres for the lengths in :class:`SegmentParams`
 (as in the YAML), metres for geometry in memory (:mod:`room_pipeline.conventions`).
@@ -47,7 +48,7 @@ DENOISE = ("gaussian", "median", "none")
 #: TotalSegmentator task, its weights folder and the airway class label in its multilabel output
 TS_TASK = "lung_vessels"
 TS_DATASET = "Dataset258_lung_vessels_248subj"
-TS_AIRWAY_LABEL = 2  # {1: lung_vessels, 2: lung_trachea_bronchia}
+TS_AIRWAY_NAME = "lung_trachea_bronchia"  # its label is read from the model's dataset.json (2 in Dataset258)
 #: minimum fill ratio area / (pi/4 * major * minor) of a trachea cross-section (1 for an ellipse)
 _MIN_FILL = 0.75
 #: above this HU a voxel counts as body tissue (left-right centre estimate)
@@ -527,29 +528,32 @@ def _ts_weights(params: SegmentParams) -> tuple[str, Path]:
 
 
 def _segment_totalsegmentator(ct: Volume, p: SegmentParams) -> SegmentResult:
-    if importlib.util.find_spec("totalsegmentator") is None:
+    missing = [m for m in ("torch", "dynamic_network_architectures") if importlib.util.find_spec(m) is None]
+    if missing:
         raise BackendUnavailable(
-            "segment.method=totalsegmentator needs the TotalSegmentator package, which is not installed: "
-            "pip install 'room-pipeline[totalseg]' (TotalSegmentator>=2.4) plus its weights, "
+            "segment.method=totalsegmentator runs TotalSegmentator's nnU-Net v2 model, which needs "
+            f"{' and '.join(missing)}, not installed: pip install 'room-pipeline[totalseg]' "
+            "(dynamic-network-architectures with --no-deps beside the local CPU torch) plus its weights, "
             "or use segment.method=region_growing")
-    env, folder = _ts_weights(p)
-    os.environ[env] = str(folder)
-    import nibabel as nib
-    from totalsegmentator.python_api import totalsegmentator
+    _, folder = _ts_weights(p)
+    from . import nnunet
 
+    dataset = folder / "nnunet" / "results" / TS_DATASET if (folder / "nnunet").is_dir() else folder / TS_DATASET
+    model = nnunet.load_model(nnunet.find_model_folder(dataset, "3d_fullres"), fold=0, device=p.device)
+    airway = model.label(TS_AIRWAY_NAME)
     affine_mm = ct.affine.copy()
     affine_mm[:3, :] /= MM
-    img = nib.Nifti1Image(np.asarray(ct.data, dtype=np.int16), affine_mm)
     try:
-        seg = totalsegmentator(img, None, task=TS_TASK, ml=True, device=p.device, quiet=True)
-    except Exception as exc:  # torch / nnU-Net raise many types; report one line
+        labels = nnunet.predict_volume(model, np.asarray(ct.data, dtype=np.float32), affine_mm)
+    except RuntimeError as exc:  # torch: out of memory, device errors
         msg = str(exc).splitlines()[0] if str(exc) else ""
-        raise BackendUnavailable(f"TotalSegmentator failed: {type(exc).__name__}: {msg}") from exc
-    labels = np.asarray(seg.dataobj)
+        raise BackendUnavailable(f"TotalSegmentator model {model.folder} failed: {type(exc).__name__}: {msg}") from None
     if labels.shape != ct.shape:
         raise BackendUnavailable(f"TotalSegmentator returned shape {labels.shape}, expected {ct.shape}")
     mask_rep: dict = {}
-    mask = validate_mask(Volume((labels == TS_AIRWAY_LABEL).astype(np.uint8), ct.affine.copy()), report=mask_rep)
+    if not (labels == airway).any():
+        raise InputError(f"TotalSegmentator model {model.folder.name} found no '{TS_AIRWAY_NAME}' voxel in the CT")
+    mask = validate_mask(Volume((labels == airway).astype(np.uint8), ct.affine.copy()), report=mask_rep)
     m = mask.data.astype(bool)
     ax, sgn = ct.superior_axis()
     prof = np.nonzero(m.any(axis=tuple(a for a in range(3) if a != ax)))[0]
@@ -562,7 +566,8 @@ def _segment_totalsegmentator(ct: Volume, p: SegmentParams) -> SegmentResult:
     ij.insert(ax, top)
     seed = tuple(int(v) for v in ij)
     n = int(np.count_nonzero(m))
-    report = {"method": "totalsegmentator", "task": TS_TASK, "seed": list(seed), "threshold_hu": None,
+    report = {"method": "totalsegmentator", "task": TS_TASK, "model_folder": str(model.folder),
+              "airway_label": airway, "seed": list(seed), "threshold_hu": None,
               "voxels": n, "volume_m3": n * float(np.prod(ct.spacing)),
               "volume_ml": n * float(np.prod(_spacing_mm(ct))) / 1000.0, **mask_rep,
               "params": dataclasses.asdict(p)}

@@ -19,8 +19,8 @@ Pipeline of :func:`plan_path`
        least ``margin_i`` from the wall) and **curvature**
        ``|P_{i-1} - 2 P_i + P_{i+1}| / h^2 <= curvature_safety * kappa_max``
        (second-order cones), by ADMM (:class:`_Admm`: one banded Cholesky solve
-       per iteration).  The start point and start direction (along the trachea)
-       and the end point are fixed; the end direction is free.  When the
+       per iteration).  The start point and start direction (along the trachea: the
+       chord over the route's first 2 lumen radii, >= 5 mm) and the end point are fixed; the end direction is free.  When the
        discrete (Menger) curvature of the result still exceeds the aim (the path
        is shorter than the route, so its spacing is below ``h``) the aim is
        tightened and the problem re-solved.  When ADMM stalls, no path keeps
@@ -612,6 +612,13 @@ def smooth_route(route_points: np.ndarray, route_radius: np.ndarray, route_s: np
     N = max(2, int(math.ceil(L / h0)) + 1)
     s_ref = np.linspace(0.0, L, N)
     C = np.stack([np.interp(s_ref, Sv, V[:, k]) for k in range(3)], axis=1)
+    if N >= 3:
+        # the fixed start direction: the chord over the route's first stretch (2 lumen radii, >= 5 mm), not the
+        # centreline's first 0.5 mm, which bends toward the rim where a scan cuts the trachea (CASE091: 124 1/m)
+        reach = min(L, max(5.0, 2.0 * float(Rv[0])))
+        d = np.array([np.interp(reach, Sv, V[:, k]) for k in range(3)]) - C[0]
+        if np.linalg.norm(d) > 1e-9:
+            C[1] = C[0] + (s_ref[1] - s_ref[0]) * d / np.linalg.norm(d)
     # lumen clearance of the reference centreline points, from the SDF: ball radii and margin clipping
     clear_c = -sdf_fn(C * MM) * mm
     r_c = np.interp(s_ref, Sv, Rv)

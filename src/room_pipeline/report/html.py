@@ -324,6 +324,9 @@ def _sequence_row(seq: Path) -> list[str]:
     planned = f"{len(traj['frames'])}" if has(traj) else f"- ({why_t or 'no frames'})"
     if isinstance(traj, dict) and isinstance(traj.get("summary"), dict) and "length_m" in traj["summary"]:
         planned += f", {1e3 * float(traj['summary']['length_m']):.1f} mm"
+    tgt = traj.get("target") if isinstance(traj, dict) else None
+    if isinstance(tgt, dict) and "stop_distance" in tgt:  # how far from the target the scope stopped, and why
+        planned += f"; stopped {1e3 * float(tgt['stop_distance']):.1f} mm from the target ({tgt.get('stop_reason', '?')})"
     simulated = f"{len(sim['frames'])}" if has(sim) else f"- ({why_s or 'no frames'})"
     if is_sequence(seq):
         try:

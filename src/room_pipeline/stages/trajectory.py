@@ -6,6 +6,9 @@ Writes ``<patient>/sequence_YYY/metadata/{trajectory.json, timestamps.json, traj
 """
 from __future__ import annotations
 
+import hashlib
+from pathlib import Path
+
 from omegaconf import DictConfig
 
 from ..anatomy.centreline import CentrelineGraph
@@ -53,6 +56,8 @@ def run(cfg: DictConfig, key: str) -> dict:
         start_file = entry.get("start_pose") if hasattr(entry, "get") else None
         start = read_start_pose(start_file) if start_file else None
         traj = plan_path(graph, targets[index], volume_sdf_fn(sdf), params, start=start)
+    if start_file:  # DVC tracks the entry (params patients.<id>); the bytes it read are recorded here
+        traj.start.update(file=str(start_file), sha256=hashlib.sha256(Path(start_file).read_bytes()).hexdigest())
     out = paths.sequence_metadata(sequence)
     doc = traj.to_dict()
     doc["metadata"] = metadata("trajectory", patient, cfg, ("trajectory",), sequence=sequence,
