@@ -182,3 +182,21 @@ def test_keep_freed_memory_is_accepted_here():
     assert isinstance(ok, bool)
     if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
         assert ok                                          # glibc takes all three settings
+
+
+def test_baselines_are_compared_on_the_method_s_own_sequences():
+    """A method scored on one sequence only is judged against the baselines on that sequence, not their mean."""
+    from room_pipeline.evaluate.tables import depth_table
+
+    def doc(cnn, const):
+        methods = {"constant": {"available": True, "AbsRel": const, "delta1": 0.3}}
+        if cnn is not None:
+            methods["cnn"] = {"available": True, "AbsRel": cnn, "delta1": 0.6}
+        return {"methods": methods}
+
+    # cnn runs on the hard sequence only (AbsRel 0.50 there, constant 0.60); constant is 0.20 on the easy one,
+    # so against constant's mean over both (0.40) cnn would wrongly be marked NO
+    table = depth_table([doc(None, 0.20), doc(0.50, 0.60)])
+    assert table.numbers["cnn"]["beats_trivial_baselines"] is True
+    table = depth_table([doc(None, 0.20), doc(0.65, 0.60)])
+    assert table.numbers["cnn"]["beats_trivial_baselines"] is False
