@@ -96,6 +96,17 @@ def test_back_project_reprojects_onto_the_depth_map():
         back_project(d[:, :10], cam)
 
 
+def test_back_project_follows_the_camera_lens_model():
+    """With lens distortion (render.distortion) the cloud must come from the camera's own rays, not a pinhole
+    formula: every point projects back onto its (distorted) pixel."""
+    cam = CameraIntrinsics.from_fov(40, 30, 80.0, distortion=(-0.101, -0.152, 0.00096, -0.0049, 0.102))
+    d = np.random.default_rng(1).uniform(0.01, 0.05, (30, 40))
+    cl = back_project(d, cam, 1)
+    assert np.allclose(cam.project(cl.points), cl.pixels, atol=1e-6)
+    pinhole = back_project(d, CameraIntrinsics.from_fov(40, 30, 80.0), 1)
+    assert np.abs(cl.points - pinhole.points).max() > 1e-4           # the lens model is really in use
+
+
 def test_median_scale_recovers_the_scale_and_refuses_empty_overlap():
     gt = np.linspace(0.01, 0.08, 100).reshape(10, 10)
     scaled, s = median_scale(gt * 7.0, gt)

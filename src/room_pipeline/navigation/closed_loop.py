@@ -408,5 +408,5 @@ def _darkest_ray(lum: np.ndarray, cam: CameraIntrinsics, quantile: float, comman
             means = [L[labels == kk].mean() for kk in regions]
             pick = int(np.argmin(means))
         u, v = cents[pick]
-    ray = np.array([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0])
+    ray = cam.rays_at(np.array([u, v], dtype=np.float64))          # the camera's own model (lens included)
     return ray / np.linalg.norm(ray)

@@ -45,7 +45,7 @@ def back_project(depth: np.ndarray, camera: CameraIntrinsics, stride: int = 1) -
     u = jj.astype(np.float64) * stride
     v = ii.astype(np.float64) * stride
     z = sub[ii, jj]
-    pts = np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], axis=1)
+    pts = camera.rays_at(np.stack([u, v], axis=1)) * z[:, None]      # the camera's own model (lens included)
     return LocalCloud(points=pts, pixels=np.stack([u, v], axis=1), depth=sub, stride=int(stride), camera=camera)
 
 

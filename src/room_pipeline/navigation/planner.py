@@ -260,8 +260,7 @@ def _violations(P: np.ndarray, tree: cKDTree, cloud: LocalCloud, radius: float, 
     cam = cloud.camera
     z = flat[:, 2]
     zs = np.maximum(z, 1e-9)
-    u = cam.fx * flat[:, 0] / zs + cam.cx
-    v = cam.fy * flat[:, 1] / zs + cam.cy
+    u, v = cam.project_normalized(flat[:, 0] / zs, flat[:, 1] / zs)   # the camera's own model (lens included)
     h, w = cloud.depth.shape
     jj = np.rint(u / cloud.stride).astype(int)
     ii = np.rint(v / cloud.stride).astype(int)
