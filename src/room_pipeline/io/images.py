@@ -44,6 +44,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..errors import InputError
+from . import exr
 from .atomic import atomic_path, write_bytes
 
 FLO_MAGIC = 202021.25
@@ -105,6 +106,37 @@ def _set_attribute(spec, name: str, value: Any) -> bool:
     return True
 
 
+def _native_attributes(attributes: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """The attributes as :mod:`room_pipeline.io.exr` stores them (names prefixed, JSON where
+    :func:`_set_attribute` would use JSON), or None when one would be a native float array (OpenImageIO
+    writes those)."""
+    from .atomic import _json_default
+
+    out: dict[str, Any] = {}
+    as_json = []
+    for k in sorted(attributes or {}):
+        v = attributes[k]
+        key = _attr_name(k)
+        if exr.encodable_attribute(v):
+            out[key] = v.item() if isinstance(v, np.generic) else v
+            continue
+        if isinstance(v, (list, tuple, np.ndarray)):
+            try:
+                arr = np.asarray(v, dtype=np.float64)
+            except (TypeError, ValueError):
+                arr = None
+            if arr is not None and arr.ndim == 1 and arr.size > 0 and np.all(np.isfinite(arr)) \
+                    and np.all(arr.astype(np.float32).astype(np.float64) == arr):
+                return None                       # a native float array: OpenImageIO's writer
+        out[key] = json.dumps(v, sort_keys=True, default=_json_default, allow_nan=False)
+        as_json.append(key)
+    if as_json:
+        out[JSON_LIST_ATTR] = json.dumps(as_json)
+    if any(len(k) > 31 for k in out):
+        return None
+    return out
+
+
 def write_exr(path: str | os.PathLike, array: np.ndarray, channels: Sequence[str] | None = None,
               attributes: Mapping[str, Any] | None = None, half: bool = False,
               compression: str = "zip") -> None:
@@ -125,6 +157,10 @@ def write_exr(path: str | os.PathLike, array: np.ndarray, channels: Sequence[str
     names = tuple(channels) if channels is not None else _DEFAULT_CHANNELS.get(c, tuple(f"C{i}" for i in range(c)))
     if len(names) != c:
         raise ValueError(f"{c} channels but {len(names)} channel names")
+    native = _native_attributes(attributes)
+    if compression in exr.CODECS and native is not None:
+        exr.write_exr_scanline(path, a, names, half, compression, native)
+        return
     pixel_type = oiio.HALF if half else oiio.FLOAT
     spec = oiio.ImageSpec(w, h, c, pixel_type)
     spec.channelnames = names
