@@ -224,11 +224,11 @@ def test_params_from_config_file_and_bad_values():
     import yaml
 
     doc = yaml.safe_load((REPO / "conf" / "execution" / "default.yaml").read_text())
-    assert ExecutionParams.from_dict(doc) == ExecutionParams(backend="local", workers=1, ray_address=None,
+    assert ExecutionParams.from_dict(doc) == ExecutionParams(backend="local", workers=0, ray_address=None,
                                                              chunk_size=0)
     p = ExecutionParams.from_dict({"backend": "ray", "workers": 4, "ray_address": "auto", "chunk_size": 8})
     assert (p.backend, p.workers, p.ray_address, p.chunk_size) == ("ray", 4, "auto", 8)
-    for bad, msg in [({"backend": "dask"}, "execution.backend"), ({"workers": 0}, "execution.workers"),
+    for bad, msg in [({"backend": "dask"}, "execution.backend"), ({"workers": -1}, "execution.workers"),
                      ({"workers": 1.5}, "execution.workers"), ({"chunk_size": -1}, "execution.chunk_size"),
                      ({"ray_address": 6379}, "execution.ray_address"), ({"threads": 2}, "execution.threads")]:
         with pytest.raises(ConfigError, match=msg.replace(".", r"\.")) as ei:
@@ -619,12 +619,23 @@ def test_render_stage_execution_params():
 
     from room_pipeline.stages.render import execution_params
 
-    assert execution_params(OmegaConf.create({})).backend == "serial"          # no section: in this process
+    assert execution_params(OmegaConf.create({}), frames=8).backend == "serial"   # no section, few frames: in-process
     assert execution_params(OmegaConf.create({"execution": {"backend": "local", "workers": 1}})).backend == "serial"
     p = execution_params(OmegaConf.create({"execution": {"backend": "local", "workers": 3}}))
     assert (p.backend, p.workers) == ("local", 3)
     with pytest.raises(ConfigError, match=r"^execution\.workers must be >= 1"):
-        execution_params(OmegaConf.create({"execution": {"workers": 0}}))
+        execution_params(OmegaConf.create({"execution": {"workers": -1}}))
+    # workers 0 (the default): one per usable core, at most one per MIN_ITEMS_PER_WORKER frames
+    from room_pipeline.execution.executor import MIN_ITEMS_PER_WORKER, usable_cores
+
+    auto = OmegaConf.create({"execution": {"backend": "local", "workers": 0}})
+    assert execution_params(auto, frames=MIN_ITEMS_PER_WORKER - 1).backend == "serial"     # too few frames: in-process
+    big = execution_params(auto, frames=10_000)
+    assert big.workers == usable_cores() and big.backend == ("local" if usable_cores() > 1 else "serial")
+    assert execution_params(auto, frames=2 * MIN_ITEMS_PER_WORKER).workers == min(2, usable_cores())
+    assert ExecutionParams(workers=0).resolved().workers == usable_cores()
+    assert ExecutionParams(workers=3).resolved(1).workers == 3                           # explicit: kept
+    assert ExecutionParams(workers=0).threads == max(1, (os.cpu_count() or 1) // usable_cores())
 
 
 def test_render_stage_cycles_bytes_do_not_depend_on_the_executor(tmp_path):

@@ -61,6 +61,18 @@ from ..errors import BackendUnavailable, ConfigError, InputError, RoomError
 
 BACKENDS = ("serial", "local", "ray")
 
+#: ``workers: 0`` (automatic) gives a worker no fewer items than this (frames of a sequence)
+MIN_ITEMS_PER_WORKER = 32
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS tells, else ``os.cpu_count()``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:                             # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
 #: ``(factory, args)``: ``factory(*args)`` is each worker's state
 Init = tuple[Callable[..., Any], Sequence[Any]]
 
@@ -70,13 +82,13 @@ class ExecutionParams:
     """Keys of ``conf/execution/default.yaml``.
 
     backend: 'serial' | 'local' | 'ray'; workers: processes or Ray actors
-    (>= 1); ray_address: None for a private local Ray head, else the address
-    of a running cluster; chunk_size: items per dispatched chunk (0 = automatic);
+    (>= 1; 0 = automatic, :meth:`resolved`); ray_address: None for a private local Ray head, else the
+    address of a running cluster; chunk_size: items per dispatched chunk (0 = automatic);
     threads_per_worker: library threads per worker (0 = cores // workers, at least 1).
     """
 
     backend: str = "local"
-    workers: int = 1
+    workers: int = 0
     ray_address: str | None = None
     chunk_size: int = 0
     threads_per_worker: int = 0
@@ -86,13 +98,24 @@ class ExecutionParams:
         """Threads each worker's libraries may use (``threads_per_worker``, or cores // workers)."""
         if self.threads_per_worker > 0:
             return self.threads_per_worker
-        return max(1, (os.cpu_count() or 1) // self.workers)
+        return max(1, (os.cpu_count() or 1) // (self.workers or usable_cores()))
+
+    def resolved(self, items: int | None = None) -> "ExecutionParams":
+        """These params with ``workers: 0`` (automatic) made a number: one worker per usable core, but no
+        more than one per :data:`MIN_ITEMS_PER_WORKER` items (a spawned worker's start-up, ~1.5 s, must be
+        small next to its share), at least 1.  Explicit ``workers`` are kept."""
+        if self.workers > 0:
+            return self
+        n = usable_cores()
+        if items is not None:
+            n = min(n, max(1, int(items) // MIN_ITEMS_PER_WORKER))
+        return dataclasses.replace(self, workers=max(1, n))
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
             raise ConfigError(f"execution.backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
-        if self.workers < 1:
-            raise ConfigError(f"execution.workers must be >= 1, got {self.workers}")
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
+            raise ConfigError(f"execution.workers must be >= 1 (or 0 = automatic), got {self.workers}")
         if self.threads_per_worker < 0:
             raise ConfigError(f"execution.threads_per_worker must be >= 0 (0 = automatic), got "
                               f"{self.threads_per_worker}")
@@ -483,6 +506,7 @@ def make_executor(params: ExecutionParams | Mapping[str, Any] | None = None, ini
     """The executor of ``params.backend``; ``init = (factory, args)`` builds each worker's state once."""
     if not isinstance(params, ExecutionParams):
         params = ExecutionParams.from_dict(params)
+    params = params.resolved()                         # workers 0: one per usable core
     if init is not None and (len(init) != 2 or not callable(init[0])):
         raise TypeError("init must be (factory, args) with factory callable")
     cls = {"serial": SerialExecutor, "local": LocalExecutor, "ray": RayExecutor}[params.backend]

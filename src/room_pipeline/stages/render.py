@@ -227,13 +227,16 @@ def load_poses(meta_dir, which: str) -> tuple[np.ndarray, np.ndarray]:
     return np.array([f["timestamp"] for f in doc["frames"]]), np.array([f["pose"] for f in doc["frames"]])
 
 
-def execution_params(cfg: DictConfig) -> ExecutionParams:
-    """The ``execution`` section (defaults when absent); ``local`` with one worker runs in this process.
+def execution_params(cfg: DictConfig, frames: int | None = None) -> ExecutionParams:
+    """The ``execution`` section (defaults when absent; ``workers: 0`` resolved for ``frames`` frames:
+    :meth:`ExecutionParams.resolved`); ``local`` with one worker runs in this process.
 
     One spawned process would only add its start-up time: the frames are the
-    same bytes either way.
+    same bytes either way.  Several processes are what uses several cores:
+    Open3D's ``cast_rays`` holds the GIL, so threads of one process cannot
+    cast and encode at once (``benchmarks/results/write_throughput.md``).
     """
-    p = ExecutionParams.from_dict(section(cfg, "execution") if "execution" in cfg else None)
+    p = ExecutionParams.from_dict(section(cfg, "execution") if "execution" in cfg else None).resolved(frames)
     if p.backend == "local" and p.workers == 1:
         return dataclasses.replace(p, backend="serial")
     return p
@@ -447,8 +450,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     patient, sequence = split_key(key)
     p = RenderParams.from_dict(section(cfg, "render"))
     storage = StorageParams.from_dict(p.storage)
-    ex_params = execution_params(cfg)
-    parallel = ex_params.backend != "serial" and ex_params.workers > 1
+    execution_params(cfg)                                   # bad execution config: stop before any work
     paths = patient_paths(cfg, patient)
     seq = paths.sequence(sequence)
     with StageTimer() as timer:
@@ -458,6 +460,8 @@ def run(cfg: DictConfig, key: str) -> dict:
             src = src[: int(p.max_frames)]
         if len(src) == 0:
             raise InputError(f"{sequence}: no poses to render")
+        ex_params = execution_params(cfg, len(src))
+        parallel = ex_params.backend != "serial" and ex_params.workers > 1
         mods = set(p.modalities)
         ensure_writable(*(seq / f for f in FOLDERS.values()), seq / "calibration", seq / "metadata")
         remove_stale_temp_files(seq)
