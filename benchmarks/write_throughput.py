@@ -73,7 +73,8 @@ DEFAULT_MODS = ("rgb", "depth", "relative_depth", "normals", "flow", "segmentati
 GEOMETRIC_DEFAULT = "geometric modalities rendered + written, default storage"
 BARE_ONE = "bare Open3D ray cast, one process (create_rays_pinhole + cast_rays, Open3D's threads)"
 OLD_STORAGE = {"depth_quantum_m": 0.0, "depth_compression": "zip", "normals_dtype": "float32",
-               "normals_compression": "zip", "flow_format": "flo", "png_level": 3, "write_threads": 0}
+               "normals_compression": "zip", "flow_format": "flo", "png_level": 3, "write_threads": 0,
+               "exr_writer": "openimageio"}
 
 
 def cpu_s() -> float:
@@ -141,9 +142,10 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     """Every candidate encoding of every modality over the sampled frames."""
     cands = []
 
-    def exr(mod, arr_key, label, prep, half, comp, err_fn, channels=None, default=False):
-        cands.append((mod, label, default, lambda f, p: write_exr(p, prep(f), channels=channels, half=half,
-                                                                  compression=comp),
+    def exr(mod, arr_key, label, prep, half, comp, err_fn, channels=None, default=False, writer="openimageio"):
+        cands.append((mod, label + (", ISA-L writer" if writer == "isal" else ""), default,
+                      lambda f, p: write_exr(p, prep(f), channels=channels, half=half, compression=comp,
+                                             writer=writer),
                       lambda p: read_exr(p)[0], err_fn, ".exr"))
 
     q17, q16 = 2.0 ** -17, 2.0 ** -16
@@ -156,8 +158,10 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     for comp in ("none", "zip", "piz", "zips"):
         exr("depth", "depth", f"float32 {comp}", raw_depth, False, comp, depth_err, ("Y",))
     for comp in ("zip", "zip:1", "piz", "pxr24"):
+        exr("depth", "depth", f"float32 rounded 2^-17 m, {comp}", rounded(q17), False, comp, depth_err, ("Y",))
+    for comp in ("zip", "pxr24"):
         exr("depth", "depth", f"float32 rounded 2^-17 m, {comp}", rounded(q17), False, comp, depth_err, ("Y",),
-            default=comp == "pxr24")
+            default=comp == "pxr24", writer="isal")
     exr("depth", "depth", "float32 rounded 2^-16 m, zip", rounded(q16), False, "zip", depth_err, ("Y",))
     exr("depth", "depth", "float32 pxr24 (lossy 24-bit)", raw_depth, False, "pxr24", depth_err, ("Y",))
     exr("depth", "depth", "half zip", raw_depth, True, "zip", depth_err, ("Y",))
@@ -166,7 +170,9 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
     nrm_err = lambda f, a: float(np.abs(a - f["normals"]).max())  # noqa: E731
     exr("normals", "normals", "float32 zip (before)", nrm, False, "zip", nrm_err)
     for comp in ("zip", "zip:1", "piz", "zips", "pxr24"):
-        exr("normals", "normals", f"half {comp}", nrm, True, comp, nrm_err, default=comp == "pxr24")
+        exr("normals", "normals", f"half {comp}", nrm, True, comp, nrm_err)
+    for comp in ("zip", "zips", "pxr24"):
+        exr("normals", "normals", f"half {comp}", nrm, True, comp, nrm_err, default=comp == "pxr24", writer="isal")
     exr("normals", "normals", "half dwaa (lossy)", nrm, True, "dwaa", nrm_err)
 
     flw = lambda f: f["flow"]  # noqa: E731
@@ -175,7 +181,10 @@ def codec_table(frames: list[dict], tmp: Path) -> list[dict]:
                   ".flo"))
     exr("flow", "flow", "float32 zip", flw, False, "zip", flow_err, ("R", "G"))
     for comp in ("zip", "zip:1", "piz", "zips", "pxr24"):
-        exr("flow", "flow", f"half {comp}", flw, True, comp, flow_err, ("R", "G"), default=comp == "pxr24")
+        exr("flow", "flow", f"half {comp}", flw, True, comp, flow_err, ("R", "G"))
+    for comp in ("zip", "zips", "pxr24"):
+        exr("flow", "flow", f"half {comp}", flw, True, comp, flow_err, ("R", "G"), default=comp == "pxr24",
+            writer="isal")
     # the noise stage writes rgb_noisy with write_png8's default level (io.images.PNG_COMPRESSION)
     from room_pipeline.io.images import PNG_COMPRESSION
 
@@ -468,11 +477,20 @@ def main() -> None:
     seq = tmp / "seq"
     runs = side_by_side(scene, p, tmp, tframes, ev, args.rounds)
     runs.append(own_cast(scene, tframes))
+    runs.append(stage_path(scene, p, seq, GEOMETRIC, {}, tframes,
+                           "geometric, default storage, one in-process worker (again, not interleaved)", ev))
     runs.append(stage_path(scene, p, seq, GEOMETRIC, {"write_threads": 0}, tframes,
-                           "geometric, default storage, writer threads off", ev))
+                           "geometric, default storage, one in-process worker, writer threads off", ev))
+    runs.append(stage_path(scene, p, seq, GEOMETRIC, {"exr_writer": "openimageio"}, tframes,
+                           "geometric, one in-process worker, OpenImageIO's EXR writer (the previous round's)", ev))
     runs.append(stage_path(scene, p, seq, GEOMETRIC, OLD_STORAGE, tframes,
                            "geometric, previous storage (float32 EXR, .flo, no threads)", ev))
-    runs.append(stage_path(scene, p, seq, DEFAULT_MODS, {}, tframes, "every default modality, default storage", ev))
+    from room_pipeline.execution import ExecutionParams
+
+    workers = ExecutionParams().resolved(n).workers
+    runs.append(stage_workers(scene, p, seq, DEFAULT_MODS, {}, tframes,
+                              f"every default modality, default storage, default execution ({workers} workers)", ev,
+                              workers))
     rates(runs)
 
     # 4. memory over many frames (poses repeated)

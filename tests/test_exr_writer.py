@@ -94,3 +94,27 @@ def test_write_exr_routes_and_attributes(tmp_path):
         exr.encode_exr(a, ("R", "G", "B"), True, "dwaa")
     with pytest.raises(ValueError, match="distinct"):
         exr.encode_exr(a, ("R", "R", "B"), True, "zip")
+
+
+def test_storage_exr_writer_knob(tmp_path):
+    """render.storage.exr_writer: both writers store the same depth, normals and flow values; stated in the metadata."""
+    from room_pipeline.errors import ConfigError
+    from room_pipeline.io.storage import StorageParams
+
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.001, 0.3, (20, 30)).astype(np.float32)
+    hit = depth > 0.01
+    normals = rng.normal(size=(20, 30, 3)).astype(np.float32)
+    flow = rng.normal(0, 5, (20, 30, 2)).astype(np.float32)
+    out = {}
+    for w in ("isal", "openimageio"):
+        st = StorageParams.from_dict({"exr_writer": w})
+        st.write_depth(tmp_path / f"d_{w}.exr", depth, hit)
+        st.write_normals(tmp_path / f"n_{w}.exr", normals)
+        st.write_flow(tmp_path / f"f_{w}.exr", flow)
+        out[w] = [read_exr(tmp_path / f"{k}_{w}.exr") for k in "dnf"]
+        assert ("ISA-L" if w == "isal" else "OpenImageIO") in st.precision()["exr_writer"]
+    for (a, an, aa), (b, bn, ba) in zip(out["isal"], out["openimageio"]):
+        assert np.array_equal(a, b) and an == bn and aa == ba
+    with pytest.raises(ConfigError, match=r"render\.storage\.exr_writer"):
+        StorageParams.from_dict({"exr_writer": "tiff"})

@@ -81,6 +81,7 @@ class StorageParams:
     flow_format: str = "exr"
     flow_dtype: str = "half"
     flow_compression: str = "pxr24"
+    exr_writer: str = "isal"
     png_level: int = 1
     point_clouds: str = "on_demand"
     point_cloud_stride: int = 1
@@ -103,6 +104,8 @@ class StorageParams:
             v = getattr(p, key)
             if not isinstance(v, str) or v.split(":")[0] not in EXR_COMPRESSIONS:
                 raise ConfigError(f"render.storage.{key} must be one of {sorted(EXR_COMPRESSIONS)}, got {v!r}")
+        if p.exr_writer not in ("isal", "openimageio"):
+            raise ConfigError(f"render.storage.exr_writer must be 'isal' or 'openimageio', got {p.exr_writer!r}")
         if p.flow_format not in ("exr", "flo"):
             raise ConfigError(f"render.storage.flow_format must be 'exr' or 'flo', got {p.flow_format!r}")
         if p.point_clouds not in ("on_demand", "ply"):
@@ -140,14 +143,14 @@ class StorageParams:
     def write_depth(self, path, depth: np.ndarray, hit: np.ndarray) -> None:
         """``depth/frame_NNNN.exr``: :meth:`depth_array` (a new array: ``depth`` is only read)."""
         write_exr(path, self.depth_array(depth, hit), channels=("Y",), half=self.depth_dtype == "half",
-                  compression=self.depth_compression,
+                  compression=self.depth_compression, writer=self.exr_writer,
                   attributes={"units": "m", "quantity": "planar z depth, 0 = no hit",
                               "quantum_m": float(self.depth_quantum_m) if self.depth_dtype == "float32" else 0.0})
 
     def write_normals(self, path, normals: np.ndarray) -> None:
         """``surface_normals/frame_NNNN.exr``: (H, W, 3) unit normals, camera frame."""
         write_exr(path, normals, half=self.normals_dtype == "half", compression=self.normals_compression,
-                  attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
+                  writer=self.exr_writer, attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
 
     def write_flow(self, path, flow: np.ndarray) -> None:
         """``optical_flow/frame_NNNN.exr`` (or ``.flo``): (H, W, 2) forward flow in pixels."""
@@ -155,7 +158,7 @@ class StorageParams:
             write_flo(path, flow)
             return
         write_exr(path, flow, channels=("R", "G"), half=self.flow_dtype == "half", compression=self.flow_compression,
-                  attributes={"units": "px", "quantity": "forward optical flow t -> t+1; R = u (columns), "
+                  writer=self.exr_writer, attributes={"units": "px", "quantity": "forward optical flow t -> t+1; R = u (columns), "
                                                          "G = v (rows)"})
 
     def write_flow_valid(self, path, valid: np.ndarray) -> None:
@@ -198,6 +201,9 @@ class StorageParams:
                         "error": ("<= 2^-12 (2.44e-4) per component (half float)" if self.normals_dtype == "half"
                                   else "float32 (relative 2^-24)")},
             "flow": flow,
+            "exr_writer": ("room_pipeline.io.exr: NumPy + ISA-L deflate (level 1) for none/zip/zips/pxr24, "
+                           "OpenImageIO otherwise; the same pixel values as OpenImageIO's writer"
+                           if self.exr_writer == "isal" else "OpenImageIO (OpenEXR library)"),
             "png": {"files": "rgb, relative_depth (16-bit), segmentation (16-bit), flow validity (8-bit)",
                     "zlib_level": int(self.png_level),
                     "zlib_strategy": "default; run-length (Z_RLE) for segmentation and flow validity",
