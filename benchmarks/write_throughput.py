@@ -19,19 +19,22 @@ path.  Camera: the render config's default (600x600, 85 deg).
    mean bytes/frame over the sample x 448 (extrapolated from the sample, not a
    full render; say so when quoting it).
 3. Throughput, side by side in one run over ``--frames`` consecutive frames
-   of the sequence.  The headline pair, interleaved ``--rounds`` times so both
-   see the same share of the other users' load: the bare Open3D ray cast
-   (``RaycastingScene.create_rays_pinhole`` + ``cast_rays`` of every pixel on
-   the renderer's own BVH, hit distances fetched: what a user of Open3D alone
-   gets) and the render stage's own per-frame path (``_frame_worker`` +
-   ``_render_block``: render, encode, write, with the writer threads) for the
-   geometric modalities (depth, relative depth, normals, flow + validity,
-   segmentation) with the default storage.  Then, once each: the renderer's
-   own cast alone, the geometric path with the writer threads off, with the
-   storage of two rounds ago (float32 EXR, .flo, ZIP, PNG level 3, no
-   threads), and every default modality.  Wall frames/s, CPU ms/frame of the
-   process (all its threads), load average before/after.
-   ``--quick``: only the headline pair (``write_throughput_headline.{md,json}``).
+   of the sequence.  The headline rows, interleaved ``--rounds`` times so all
+   see the same share of the other users' load (:func:`side_by_side`): the
+   bare Open3D ray cast (``RaycastingScene.create_rays_pinhole`` + ``cast_rays``
+   of every pixel on the renderer's own BVH, hit distances fetched: what a user
+   of Open3D alone gets) in one process and in one process per usable core (the
+   same cores the stage uses), and the render stage's own fan-out
+   (``_frame_worker`` + ``_render_block`` on the executor: render, encode,
+   write) for the geometric modalities (depth, relative depth, normals, flow +
+   validity, segmentation) with the default storage, with its default execution
+   (``workers: 0`` resolved for the sequence: one process per core) and with one
+   in-process worker.  Then, once each: the renderer's own cast alone, the
+   in-process path again, with the writer threads off, with OpenImageIO's EXR
+   writer, with the storage of two rounds ago (float32 EXR, .flo, ZIP, PNG level
+   3, no threads), and every default modality.  Wall frames/s, CPU ms/frame of
+   every process of the run (all threads), load average before/after.
+   ``--quick``: only the headline rows (``write_throughput_headline.{md,json}``).
 4. Memory: resident set size every 25 frames over ``--memory-frames`` frames
    (the sequence's poses repeated when it is shorter) through the same path.
 
