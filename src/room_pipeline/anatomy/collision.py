@@ -18,7 +18,7 @@ from ..io.mesh import Mesh
 from .decimate import decimate_under_bound
 
 
-def collision_surface(mesh: Mesh, fraction: float, max_error_mm: float, max_rounds: int = 5,
+def collision_surface(mesh: Mesh, fraction: float, max_error_mm: float, max_rounds: int = 8,
                       n_samples: int = 200_000) -> tuple[Mesh, dict]:
     """Decimate ``mesh`` to about ``fraction`` of its faces with max two-sided distance <= ``max_error_mm``.
 

@@ -139,6 +139,8 @@ def decimate_under_bound(mesh: Mesh, fraction: float, max_error_mm: float, p95_e
             e = two_sided_error(mesh, dec, n_samples)
             ok_max = e["max_mm"] <= max_error_mm
             ok_p95 = p95_error_mm is None or e["p95_mm"] <= p95_error_mm
+            if ok_max and ok_p95 and ok_topo and dec.n_faces >= n:      # every face protected: nothing gained
+                break
             if ok_max and ok_p95 and ok_topo:
                 report.update(faces=int(dec.n_faces), fraction=dec.n_faces / n, error_max_mm=e["max_mm"],
                               error_p95_mm=e["p95_mm"], error_input_to_output_max_mm=e["a_to_b_max_mm"],
