@@ -37,7 +37,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from collision_corridor import angle_deg, inputs  # noqa: E402
 from room_pipeline.io.mesh import read_obj  # noqa: E402
 from room_pipeline.stages.simulate import open_entrance  # noqa: E402
-from room_pipeline.anatomy.decimate import decimate_under_bound, two_sided_error  # noqa: E402
+from room_pipeline.anatomy.collision import collision_surface  # noqa: E402
+from room_pipeline.anatomy.decimate import two_sided_error  # noqa: E402
 from room_pipeline.io.mesh import Mesh  # noqa: E402
 from room_pipeline.robot.kinematics import ScopeGeometry  # noqa: E402
 from room_pipeline.robot.pybullet_sim import SimParams, simulate  # noqa: E402
@@ -103,7 +104,7 @@ def main() -> None:
         for frac in fracs:
             for b in bounds:
                 c0 = time.process_time()
-                col, rep = decimate_under_bound(closed, frac, b)      # as the mesh stage makes collision_model.obj
+                col, rep = collision_surface(closed, frac, b)         # as the mesh stage makes collision_model.obj
                 cdec = time.process_time() - c0
                 err = two_sided_error(closed, col) if col.n_faces != closed.n_faces else None
                 res, cpu, wall = sim(traj, opened(col), args.repeats)  # as the simulate stage reads it

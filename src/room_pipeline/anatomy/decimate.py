@@ -119,7 +119,6 @@ def decimate_under_bound(mesh: Mesh, fraction: float, max_error_mm: float, p95_e
     bound = max_error_mm * MM
     cen = mesh.vertices[mesh.faces].mean(axis=1)
     reach = np.linalg.norm(mesh.vertices[mesh.faces] - cen[:, None], axis=2).max(axis=1)
-    tree = None
     protect = np.zeros(n, bool)
     frac, radius = float(fraction), protect_radius_mm * MM
     for rnd in range(1, max_rounds + 1):
@@ -159,12 +158,9 @@ def decimate_under_bound(mesh: Mesh, fraction: float, max_error_mm: float, p95_e
                 if not ok_topo and len(bad) == 0:
                     frac = 0.5 * (1.0 + frac)
                     continue
-                if tree is None:
-                    tree = cKDTree(cen)
                 # every face whose bounding sphere reaches within `radius` of a missed point
-                hits = tree.query_ball_point(bad, radius + float(reach.max()))
-                idx = np.unique(np.concatenate([np.asarray(h, np.int64) for h in hits] + [np.zeros(0, np.int64)]))
-                protect[idx] = True
+                d, _ = cKDTree(bad).query(cen)
+                protect |= d - reach <= radius
                 radius *= 2.0
         else:
             frac = 0.5 * (1.0 + frac)
