@@ -6,8 +6,9 @@ indices -> affine to world metres -> orientation outward (positive signed
 volume) -> clean-up (duplicate vertices/faces, unreferenced vertices,
 zero-area faces; optionally the largest component only) -> volume-preserving
 Taubin smoothing -> quadric edge-collapse decimation under an error bound
-(measured symmetric distance to the pre-decimation surface; the reduction is
-backed off until the bound holds) -> optional tetrahedral mesh (pytetwild).
+(measured two-sided distance to the pre-decimation surface; ``anatomy/decimate.py``,
+the one routine shared with the collision surface) -> optional tetrahedral mesh
+(pytetwild) -> the scope's collision surface (``anatomy/collision.py``).
 
 pymeshlab is imported inside the functions only (its Embree clashes with bpy's).
 """
@@ -17,14 +18,15 @@ import dataclasses
 from typing import Any, Mapping
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse.csgraph import connected_components
 
 from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import ConfigError, InputError
 from ..io.mesh import Mesh
 from ..io.volume import Volume
+from .collision import collision_surface
+from .decimate import QuadricOptions, decimate_under_bound
+from .topology import _components, mesh_topology  # noqa: F401  (mesh_topology: part of this module's API)
 
 SMOOTHING = ("none", "taubin", "hc_laplacian")
 
@@ -41,7 +43,7 @@ class MeshParams:
         decimation_fraction: target face count as a fraction of the input (1.0 = no decimation).
         decimation_max_error_mm: bound on the max symmetric distance to the pre-decimation surface, mm.
         decimation_p95_error_mm: bound on its 95th percentile, mm.
-        decimation_max_retries: how often the reduction is halved before giving up decimation.
+        decimation_max_retries: rounds after the first before giving up decimation (anatomy/decimate.py).
         decimation_quality_threshold: quadric decimation triangle-quality threshold (0..1).
         preserve_normal: forbid face flips during decimation.
         preserve_topology: forbid topology changes during decimation.
@@ -67,7 +69,7 @@ class MeshParams:
     planar_quadric: bool = True
     tetrahedralize: bool = False
     tet_edge_length_fraction: float = 0.05
-    collision_decimation: float = 0.5
+    collision_decimation: float = 0.25
     collision_max_error_mm: float = 0.25
 
     def __post_init__(self) -> None:
@@ -111,69 +113,6 @@ class MeshResult:
     tets: tuple[np.ndarray, np.ndarray] | None
     report: dict
     collision: Mesh | None = None
-
-
-# --------------------------------------------------------------------------- topology
-def _components(n_vertices: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected components of faces (sharing a vertex): (count, label per face)."""
-    if len(faces) == 0:
-        return 0, np.zeros(0, dtype=np.int64)
-    rows = np.repeat(faces[:, 0], 2)
-    cols = faces[:, 1:].reshape(-1)
-    g = sparse.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n_vertices, n_vertices))
-    _, lab = connected_components(g, directed=False)
-    flab = lab[faces[:, 0]]
-    uniq, flab = np.unique(flab, return_inverse=True)
-    return len(uniq), flab
-
-
-def mesh_topology(mesh: Mesh) -> dict:
-    """Topology figures of a triangle mesh, computed in numpy.
-
-    Returns boundary_edges, non_manifold_edges (shared by > 2 faces),
-    non_manifold_vertices (faces around the vertex form more than one fan),
-    watertight (no boundary or non-manifold edge), manifold (no non-manifold
-    edge or vertex), orientation_consistent (every edge used once in each
-    direction where it has two faces), components, euler_characteristic (V - E + F
-    over referenced vertices), n_vertices, n_faces.
-    """
-    f = mesh.faces
-    nv = mesh.n_vertices
-    if len(f) == 0:
-        return {"n_vertices": nv, "n_faces": 0, "boundary_edges": 0, "non_manifold_edges": 0,
-                "non_manifold_vertices": 0, "watertight": False, "manifold": True,
-                "orientation_consistent": True, "components": 0, "euler_characteristic": 0}
-    he = np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2)  # directed half-edges
-    und = np.sort(he, axis=1)
-    key = und[:, 0] * np.int64(nv) + und[:, 1]
-    ukey, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    boundary = int(np.sum(cnt == 1))
-    nonman_e = int(np.sum(cnt > 2))
-    dkey = he[:, 0] * np.int64(nv) + he[:, 1]
-    _, dcnt = np.unique(dkey, return_counts=True)
-    # consistent: no directed half-edge repeated (two faces traversing an edge the same way)
-    consistent = bool(np.all(dcnt == 1))
-    # non-manifold vertices: link of the vertex has more than one connected piece
-    corners = np.concatenate([f[:, [0, 1, 2]], f[:, [1, 2, 0]], f[:, [2, 0, 1]]])  # (centre, a, b)
-    c, a, b = corners[:, 0], corners[:, 1], corners[:, 2]
-    ka = c * np.int64(nv) + a
-    kb = c * np.int64(nv) + b
-    nodes, node_inv = np.unique(np.concatenate([ka, kb]), return_inverse=True)
-    m = len(corners)
-    g = sparse.coo_matrix((np.ones(m, dtype=np.int8), (node_inv[:m], node_inv[m:])), shape=(len(nodes), len(nodes)))
-    _, lab = connected_components(g, directed=False)
-    centre = nodes // nv
-    pairs = np.unique(np.stack([centre, lab], axis=1), axis=0)
-    pieces = np.bincount(pairs[:, 0], minlength=nv)
-    nonman_v = int(np.sum(pieces > 1))
-    used = np.unique(f)
-    ncomp, _ = _components(nv, f)
-    return {"n_vertices": int(nv), "n_faces": int(len(f)), "boundary_edges": boundary,
-            "non_manifold_edges": nonman_e, "non_manifold_vertices": nonman_v,
-            "watertight": bool(boundary == 0 and nonman_e == 0),
-            "manifold": bool(nonman_e == 0 and nonman_v == 0),
-            "orientation_consistent": consistent, "components": int(ncomp),
-            "euler_characteristic": int(len(used) - len(ukey) + len(f))}
 
 
 # --------------------------------------------------------------------------- steps
@@ -232,57 +171,21 @@ def _largest_component(mesh: Mesh) -> Mesh:
     return Mesh(mesh.vertices[used], newf.reshape(-1, 3))
 
 
-def surface_distance(a: Mesh, b: Mesh, n_samples: int = 200_000, seed: int = 0) -> np.ndarray:
-    """Distances (metres) from a's vertices and uniform samples on a's faces to surface b."""
-    import open3d as o3d
-
-    from ..io.mesh import sample_surface
-
-    origin = b.vertices.mean(axis=0)
-    area = a.area()
-    spacing = np.sqrt(area / n_samples) if area > 0 else 1.0
-    pts = np.concatenate([a.vertices, sample_surface(a, spacing, np.random.default_rng(seed), max_points=n_samples)])
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((b.vertices - origin).astype(np.float32)),
-                        o3d.core.Tensor(b.faces.astype(np.uint32)))
-    return scene.compute_distance(o3d.core.Tensor((pts - origin).astype(np.float32))).numpy().astype(np.float64)
-
-
 def _decimate(mesh: Mesh, params: MeshParams, report: dict) -> Mesh:
-    """Quadric edge collapse to ``decimation_fraction`` of the faces, backed off until the error bound holds."""
-    frac = float(params.decimation_fraction)
-    report["decimation_requested_fraction"] = frac
-    if frac >= 1.0:
-        report.update(decimation_fraction=1.0, decimation_error_max_m=0.0, decimation_error_p95_m=0.0,
-                      decimation_attempts=0)
-        return mesh
-    scale = 1.0 / MM  # work in mm: pymeshlab's thresholds behave better at unit scale
-    max_err, p95_err = params.decimation_max_error_mm * MM, params.decimation_p95_error_mm * MM
-    for attempt in range(params.decimation_max_retries + 1):
-        ms = _to_ms(mesh, scale)
-        target = max(8, int(round(mesh.n_faces * frac)))
-        ms.meshing_decimation_quadric_edge_collapse(
-            targetfacenum=target, qualitythr=params.decimation_quality_threshold,
-            preserveboundary=True, preservenormal=params.preserve_normal,
-            preservetopology=params.preserve_topology, optimalplacement=params.optimal_placement,
-            planarquadric=params.planar_quadric, autoclean=True)
-        _clean(ms)
-        dec = _from_ms(ms, scale)
-        d = np.concatenate([surface_distance(dec, mesh), surface_distance(mesh, dec)])
-        emax, e95 = float(d.max()), float(np.percentile(d, 95))
-        topo = mesh_topology(dec)
-        ok = emax <= max_err and e95 <= p95_err and topo["watertight"] and topo["manifold"]
-        if ok:
-            report.update(decimation_fraction=dec.n_faces / mesh.n_faces, decimation_error_max_m=emax,
-                          decimation_error_p95_m=e95, decimation_attempts=attempt + 1)
-            return dec
-        frac = min(1.0, 0.5 * (1.0 + frac))  # halve the reduction
-        if frac >= 0.99:
-            break
-    report.update(decimation_fraction=1.0, decimation_error_max_m=0.0, decimation_error_p95_m=0.0,
-                  decimation_attempts=params.decimation_max_retries + 1,
-                  decimation_note="error bound not met at any tried reduction; mesh left undecimated")
-    return mesh
+    """Quadric edge collapse to ``decimation_fraction`` of the faces under the error bounds (anatomy/decimate.py)."""
+    opts = QuadricOptions(quality_threshold=params.decimation_quality_threshold, preserve_normal=params.preserve_normal,
+                          preserve_topology=params.preserve_topology, optimal_placement=params.optimal_placement,
+                          planar_quadric=params.planar_quadric)
+    dec, r = decimate_under_bound(mesh, params.decimation_fraction, params.decimation_max_error_mm,
+                                  params.decimation_p95_error_mm, options=opts,
+                                  max_rounds=params.decimation_max_retries + 1)
+    report.update(decimation_requested_fraction=float(params.decimation_fraction),
+                  decimation_fraction=r["fraction"], decimation_error_max_m=r["error_max_mm"] * MM,
+                  decimation_error_p95_m=r["error_p95_mm"] * MM, decimation_attempts=r["rounds"],
+                  decimation_protected_faces=r["protected_faces"])
+    if "note" in r:
+        report["decimation_note"] = r["note"]
+    return dec
 
 
 def tetrahedralize(mesh: Mesh, edge_length_fraction: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
@@ -345,8 +248,6 @@ def extract_surface(sdf: Volume, params: MeshParams) -> MeshResult:
     if params.tetrahedralize:
         tets = tetrahedralize(mesh, params.tet_edge_length_fraction)
         report.update(n_tets=int(len(tets[1])), n_tet_vertices=int(len(tets[0])))
-    from .collision import collision_surface
-
     collision, report["collision"] = collision_surface(mesh, params.collision_decimation,
                                                        params.collision_max_error_mm)
     return MeshResult(mesh=mesh, tets=tets, report=report, collision=collision)

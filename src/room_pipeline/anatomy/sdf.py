@@ -172,7 +172,7 @@ def _curvature_shift(f: np.ndarray, h: np.ndarray, sigma_mm: np.ndarray, verts: 
 
 def _smooth_mc_feet(sub: np.ndarray, h: np.ndarray, params: SdfParams, pts: np.ndarray) -> np.ndarray:
     """Closest points (units of h, crop frame) on the sub-voxel surface to ``pts`` (voxel indices into ``sub``)."""
-    import open3d as o3d
+    from ..geometry.open3d_adapter import MeshScene
 
     f = sub.astype(np.float32)
     if params.sigma_voxels > 0:
@@ -195,10 +195,7 @@ def _smooth_mc_feet(sub: np.ndarray, h: np.ndarray, params: SdfParams, pts: np.n
         near = ndimage.map_coordinates(touched.astype(np.uint8), (verts / h).T, order=0, mode="nearest") > 0
         delta[near] = 0.0
         verts = verts + delta[:, None] * nout
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    q = o3d.core.Tensor((pts * h).astype(np.float32))
-    return scene.compute_closest_points(q)["points"].numpy().astype(np.float64)
+    return MeshScene(verts, faces, origin=np.zeros(3)).closest_points(pts * h)
 
 
 # --------------------------------------------------------------------------- API

@@ -68,18 +68,14 @@ def mesh_surface_distance(mesh: Mesh, tree: AirwayTree, spacing: float) -> dict:
     (mean / p95 / max in ``_m`` and ``_vox``), ``hausdorff_m``/``hausdorff_vox``
     (symmetric), ``mean_m``/``mean_vox``/``p95_m``/``p95_vox`` of mesh -> true.
     """
-    import open3d as o3d
+    from ..geometry.open3d_adapter import MeshScene
 
     pts = np.concatenate([sample_surface(mesh, spacing / 4.0), mesh.vertices])
     d, exact = tree.sdf(pts, band=8 * spacing)
     m2t = np.abs(d[exact])
     truth, _ = tree.surface_samples(spacing / 2.0)
-    scene = o3d.t.geometry.RaycastingScene()
     # distances in a local frame (float32 precision)
-    origin = mesh.vertices.mean(axis=0)
-    scene.add_triangles(o3d.core.Tensor((mesh.vertices - origin).astype(np.float32)),
-                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
-    t2m = scene.compute_distance(o3d.core.Tensor((truth - origin).astype(np.float32))).numpy().astype(np.float64)
+    t2m = MeshScene.of(mesh, origin=mesh.vertices.mean(axis=0)).distance(truth)
     out = {"voxel_m": float(spacing)}
     out.update(_stats(m2t, spacing, "m2t_"))
     out.update(_stats(t2m, spacing, "t2m_"))

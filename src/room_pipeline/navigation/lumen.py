@@ -17,22 +17,14 @@ class TrueLumen:
     """Signed distance to a closed lumen mesh (world RAS+ metres)."""
 
     def __init__(self, mesh: Mesh) -> None:
-        import open3d as o3d
+        from ..geometry.open3d_adapter import MeshScene
 
-        self._o3d = o3d
-        v = mesh.vertices
-        self.origin = 0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3)
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor((v - self.origin).astype(np.float32)),
-                                  o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+        self._scene = MeshScene.of(mesh)              # local frame about the bounding box's centre
+        self.origin = self._scene.origin
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
         """(N,) signed distance of world points (N, 3) to the surface, m; negative inside the lumen."""
-        q = (np.asarray(points, float).reshape(-1, 3) - self.origin).astype(np.float32)
-        if len(q) == 0:
-            return np.zeros(0)
-        out = self._scene.compute_signed_distance(self._o3d.core.Tensor(q))
-        return out.numpy().astype(np.float64)
+        return self._scene.signed_distance(points)
 
     def path_report(self, points_world: np.ndarray, radius: float) -> dict:
         """Clearance of scope spheres (radius m) along a path: min wall distance, collision flag, first hit index."""

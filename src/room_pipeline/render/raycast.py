@@ -135,8 +135,9 @@ class RaycastRenderer:
     """Open3D ray-casting backend for a :class:`~room_pipeline.render.scene.Scene`."""
 
     def __init__(self, scene: Scene, config: RaycastConfig | None = None) -> None:
-        import open3d as o3d
+        from ..geometry.open3d_adapter import o3d as open3d_module
 
+        o3d = open3d_module()
         self._o3d = o3d
         self.scene = scene
         self.config = config or RaycastConfig()
