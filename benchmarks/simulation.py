@@ -4,6 +4,7 @@
     .venv/bin/python benchmarks/simulation.py --physical-reference OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --converged-reference OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --reachability OUTPUT_DIR [OUTPUT_DIR ...]
+    .venv/bin/python benchmarks/simulation.py --plan-tracking OUTPUT_DIR [OUTPUT_DIR ...]
 
 (The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
 after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
@@ -116,7 +117,10 @@ def pipeline_sequence(quick: bool) -> dict:
         return {"skipped": f"{meta} absent: run `dvc repro` first"}
     fr = json.loads(meta.read_text())["frames"]
     traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),
-                                 poses=np.array([f["pose"] for f in fr]), arclength=np.array([f["arclength"] for f in fr]))
+                                 poses=np.array([f["pose"] for f in fr]), arclength=np.array([f["arclength"] for f in fr]),
+                                 # a joint-space plan (trajectory.joint_plan): the shaft's path and the joints
+                                 path_poses=np.array([f["path_pose"] for f in fr]) if "path_pose" in fr[0] else None,
+                                 joints=np.array([f["q"] for f in fr]) if "q" in fr[0] else None)
     graph = json.loads((root / "anatomy" / "centreline_graph.json").read_text())
     r0 = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
 
@@ -212,7 +216,10 @@ def _load_sequence(root: Path):
 
     fr = json.loads((root / "sequence_000" / "metadata" / "trajectory.json").read_text())["frames"]
     traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),
-                                 poses=np.array([f["pose"] for f in fr]), arclength=np.array([f["arclength"] for f in fr]))
+                                 poses=np.array([f["pose"] for f in fr]), arclength=np.array([f["arclength"] for f in fr]),
+                                 # a joint-space plan (trajectory.joint_plan): the shaft's path and the joints
+                                 path_poses=np.array([f["path_pose"] for f in fr]) if "path_pose" in fr[0] else None,
+                                 joints=np.array([f["q"] for f in fr]) if "q" in fr[0] else None)
     graph = json.loads((root / "anatomy" / "centreline_graph.json").read_text())
     r0 = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
     mesh = open_entrance(read_obj(root / "anatomy" / "collision_model.obj"), traj.poses[0, :3, 3],
@@ -512,8 +519,59 @@ def reachability(dirs: list[str]) -> None:
     print("\n".join(md))
 
 
+def plan_tracking(dirs: list[str]) -> None:
+    """Issue #17's simulated-vs-planned figures on pipeline outputs (after ``room stage trajectory`` and
+    ``room stage simulate`` of each sequence_000): the joint plan's departure from the centreline path
+    (trajectory.json -> joint_plan) and the simulated camera against the plan (simulation.json -> report).
+    Writes benchmarks/results/simulation_plan_tracking.{json,md}."""
+    rows = []
+    for d in dirs:
+        for root in sorted(Path(d).glob("patient_*")):
+            meta = root / "sequence_000" / "metadata"
+            if not (meta / "simulation.json").exists():
+                continue
+            jp = json.loads((meta / "trajectory.json").read_text()).get("joint_plan")
+            r = json.loads((meta / "simulation.json").read_text())["report"]
+            rows.append({"sequence": f"{root.name}/sequence_000", "joint_plan": jp,
+                         "tracking_error_mm": r["tracking_error_mm"], "tracking_error_deg": r["tracking_error_deg"],
+                         "camera_roll_straight_stretch_max_deg": r["camera_roll_deg"]["straight_stretch_change_max"],
+                         "contact_force_n_max": r["contact_force_n"]["max"], "penetration_mm_max": r["penetration_mm"]["max"],
+                         "command": r.get("command"), "time_step_s": r["time_step_s"]})
+    res = ROOT / "benchmarks" / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    (res / "simulation_plan_tracking.json").write_text(json.dumps({"rows": rows, "dirs": dirs}, indent=1))
+    md = ["# Simulated vs planned with a joint-space plan (benchmarks/simulation.py --plan-tracking)", "",
+          "The trajectory stage plans in the scope's joint space (`trajectory.joint_plan`, planning/joint_plan.py): the "
+          "planned camera poses are the forward kinematics of q(t), and simulate commands q(t) "
+          "(`simulate.track: joints`), so simulated vs planned is the dynamics, contact and actuation (delay, gain).  "
+          "Bounds (issue #17): median <= 1.0 mm, max <= 2.5 mm, view median <= 2 deg; straight-stretch roll <= 1 deg.  "
+          "Command: `room stage trajectory|simulate --patient P/sequence_000 output_dir=DIR` for each patient, then "
+          "`python benchmarks/simulation.py --plan-tracking " + " ".join(dirs) + "`", "",
+          "| sequence | sim vs plan: position median / max mm | view median / max deg | straight-stretch roll deg | "
+          "contact max N | plan vs path: position median / p95 / max mm | view median / p95 / max deg | plan roll vs "
+          "path, straight stretch deg | plan body clearance deficit max mm |",
+          "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        jp = r["joint_plan"] or {}
+        dp, dv = jp.get("departure_from_path_mm", {}), jp.get("view_departure_from_path_deg", {})
+        f2 = lambda x: "-" if x is None else f"{x:.2f}"
+        md.append(f"| {r['sequence']} | {r['tracking_error_mm']['median']:.2f} / {r['tracking_error_mm']['max']:.2f} | "
+                  f"{r['tracking_error_deg']['median']:.2f} / {r['tracking_error_deg']['max']:.2f} | "
+                  f"{r['camera_roll_straight_stretch_max_deg']:.2f} | {r['contact_force_n_max']:.3f} | "
+                  f"{f2(dp.get('median'))} / {f2(dp.get('p95'))} / {f2(dp.get('max'))} | "
+                  f"{f2(dv.get('median'))} / {f2(dv.get('p95'))} / {f2(dv.get('max'))} | "
+                  f"{f2(jp.get('roll_vs_path_deg', {}).get('straight_stretch_change_max'))} | "
+                  f"{f2(jp.get('body_clearance_deficit_max_mm'))} |")
+    (res / "simulation_plan_tracking.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
 def main() -> None:
     quick = "--quick" in sys.argv
+    if "--plan-tracking" in sys.argv:
+        i = sys.argv.index("--plan-tracking")
+        plan_tracking([a for a in sys.argv[i + 1:] if not a.startswith("--")])
+        return
     if "--reachability" in sys.argv:
         i = sys.argv.index("--reachability")
         reachability([a for a in sys.argv[i + 1:] if not a.startswith("--")])
