@@ -532,7 +532,9 @@ def plan_tracking(dirs: list[str]) -> None:
                 continue
             jp = json.loads((meta / "trajectory.json").read_text()).get("joint_plan")
             r = json.loads((meta / "simulation.json").read_text())["report"]
-            rows.append({"sequence": f"{root.name}/sequence_000", "joint_plan": jp,
+            w = (jp or {}).get("params", {}).get("wall_weight")
+            rows.append({"sequence": f"{root.name}/sequence_000" + ("" if w is None else f" (wall_weight {w:g})"),
+                         "dir": d, "joint_plan": jp,
                          "tracking_error_mm": r["tracking_error_mm"], "tracking_error_deg": r["tracking_error_deg"],
                          "camera_roll_straight_stretch_max_deg": r["camera_roll_deg"]["straight_stretch_change_max"],
                          "contact_force_n_max": r["contact_force_n"]["max"], "penetration_mm_max": r["penetration_mm"]["max"],

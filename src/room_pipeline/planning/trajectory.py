@@ -194,10 +194,8 @@ class TrajectoryParams:
         if self.joint_plan is not None:
             from .joint_plan import JointPlanParams
             if not isinstance(self.joint_plan, Mapping):
-                try:
-                    self.joint_plan = dict(self.joint_plan)
-                except (TypeError, ValueError):
-                    raise ConfigError(f"trajectory.joint_plan must be null or a mapping, got {self.joint_plan!r}") from None
+                raise ConfigError(f"trajectory.joint_plan must be null or a mapping, got {self.joint_plan!r}")
+            self.joint_plan = {str(k): v for k, v in self.joint_plan.items()}
             JointPlanParams.from_dict(self.joint_plan)
         if self.points is not None and not isinstance(self.points, (str, os.PathLike, list, tuple, np.ndarray)):
             raise ConfigError(f"trajectory.points must be a list of [x, y, z] (m) or a target file path, got {self.points!r}")
