@@ -5,6 +5,7 @@
     .venv/bin/python benchmarks/simulation.py --converged-reference OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --reachability OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --plan-tracking OUTPUT_DIR [OUTPUT_DIR ...]
+    .venv/bin/python benchmarks/simulation.py --reference-contact OUTPUT_DIR [OUTPUT_DIR ...]
 
 (The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
 after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
@@ -519,6 +520,49 @@ def reachability(dirs: list[str]) -> None:
     print("\n".join(md))
 
 
+def reference_in_contact(dirs: list[str]) -> None:
+    """Where the issue's physical-mass 1 ms reference departs from the 0.5 ms run: the view difference at the
+    recorded frames split by contact (0.5 ms run's contact force > 0), and the contact force of both runs at
+    the frames that differ most.  Writes benchmarks/results/simulation_reference_contact.{json,md}."""
+    rows = []
+    for d in dirs:
+        for root in sorted(Path(d).glob("patient_*")):
+            if not (root / "sequence_000" / "metadata" / "trajectory.json").exists():
+                continue
+            traj, mesh = _load_sequence(root)
+            a = simulate(traj, mesh, SimParams(**{**PHYS_REF, "time_step_s": 5e-4, "max_step_halvings": 0}), G)
+            b = simulate(traj, mesh, SimParams(**{**PHYS_REF, "time_step_s": 1e-3, "max_step_halvings": 0}), G)
+            ang = np.degrees([math.atan2(np.linalg.norm(np.cross(x[:3, 2], y[:3, 2])), float(x[:3, 2] @ y[:3, 2]))
+                              for x, y in zip(a.tip_poses, b.tip_poses)])
+            inc = a.contact_force_n > 0
+            top = np.argsort(-ang)[:10]
+            rows.append({"sequence": f"{root.name}/sequence_000", "frames": int(len(ang)), "frames_in_contact": int(inc.sum()),
+                         "view_deg_p95_all": float(np.percentile(ang, 95)),
+                         "view_deg_p95_in_contact": float(np.percentile(ang[inc], 95)) if inc.any() else None,
+                         "view_deg_max_out_of_contact": float(ang[~inc].max()) if (~inc).any() else None,
+                         "top_frames": [{"frame": int(k), "view_deg": float(ang[k]),
+                                         "force_n_0p5ms": float(a.contact_force_n[k]), "force_n_1ms": float(b.contact_force_n[k]),
+                                         "q1_mm": float(a.q_act[k, 0] * 1e3)} for k in sorted(top)]})
+            print(json.dumps(rows[-1]), flush=True)
+    res = ROOT / "benchmarks" / "results"
+    (res / "simulation_reference_contact.json").write_text(json.dumps({"rows": rows, "dirs": dirs}, indent=1))
+    md = ["# The issue's 1 ms reference against the 0.5 ms run, in and out of contact (benchmarks/simulation.py "
+          "--reference-contact)", "", "Physical mass, no step halving, the default sequences with the joint plan.  Command: "
+          "`python benchmarks/simulation.py --reference-contact " + " ".join(dirs) + "`", "",
+          "| sequence | frames in contact | view diff p95 all / in contact deg | view diff max out of contact deg | "
+          "10 most different frames: median contact force 0.5 ms / 1 ms N |", "|---|---|---|---|---|"]
+    for r in rows:
+        t = r["top_frames"]
+        f05 = float(np.median([x["force_n_0p5ms"] for x in t]))
+        f1 = float(np.median([x["force_n_1ms"] for x in t]))
+        pin = "-" if r["view_deg_p95_in_contact"] is None else f"{r['view_deg_p95_in_contact']:.2f}"
+        pout = "-" if r["view_deg_max_out_of_contact"] is None else f"{r['view_deg_max_out_of_contact']:.3f}"
+        md.append(f"| {r['sequence']} | {r['frames_in_contact']} / {r['frames']} | {r['view_deg_p95_all']:.2f} / {pin} | "
+                  f"{pout} | {f05:.4f} / {f1:.4f} |")
+    (res / "simulation_reference_contact.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
 def plan_tracking(dirs: list[str]) -> None:
     """Issue #17's simulated-vs-planned figures on pipeline outputs (after ``room stage trajectory`` and
     ``room stage simulate`` of each sequence_000): the joint plan's departure from the centreline path
@@ -570,6 +614,10 @@ def plan_tracking(dirs: list[str]) -> None:
 
 def main() -> None:
     quick = "--quick" in sys.argv
+    if "--reference-contact" in sys.argv:
+        i = sys.argv.index("--reference-contact")
+        reference_in_contact([a for a in sys.argv[i + 1:] if not a.startswith("--")])
+        return
     if "--plan-tracking" in sys.argv:
         i = sys.argv.index("--plan-tracking")
         plan_tracking([a for a in sys.argv[i + 1:] if not a.startswith("--")])

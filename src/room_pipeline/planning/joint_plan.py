@@ -36,8 +36,11 @@ What
     axis; ``q2 = 0`` is the route's rotation-minimising frame), so the roll-continuity term keeps the
     camera from rolling where the bend does not need it (near zero bending any ``q2`` fits).
     Each frame is solved by bounded least squares (``scipy.optimize.least_squares``, trust region
-    reflective) from two starts, the previous joints advanced along the route and the controller's
-    pose IK (:class:`~room_pipeline.robot.controller.IKController`), the lower cost kept.
+    reflective) from three starts, the previous joints advanced along the route, the controller's
+    pose IK (:class:`~room_pipeline.robot.controller.IKController`) and that IK's bend in the previous
+    bending plane, the lowest cost kept.  The solve is greedy (no look-ahead): where the path turns
+    harder than the segment can follow from a base on the path, or the lumen narrows, the plan departs
+    from the path (at the carina and the routes' ends of the default phantoms: up to 18-20 mm, README).
 
 The planned camera poses are the forward kinematics of that joint plan, so the plan and the
 controller agree exactly: the simulator commands ``q_k`` and simulated-vs-planned measures the
