@@ -62,6 +62,13 @@ Pipeline of :func:`plan_path`
        (``view_jitter_deg`` > 0): a seeded, temporally smooth (Gaussian,
        ``view_jitter_time_s``) random rotation about the camera x and y axes whose
        angle has that root-mean-square over the sequence; roll is untouched.
+    7. **Joint space** (``joint_plan``, an option: ``joint_plan.enabled``, off in the default config): the poses of steps 5-6 become
+       ``path_poses`` (what the shaft follows and the camera aims at) and the camera poses are the
+       forward kinematics of a joint trajectory ``q(t)`` of the scope (:mod:`.joint_plan`: the
+       constant-curvature bending segment with its base on the path, position/view trade-off,
+       roll continuity, joint and rate limits, the scope body kept in the lumen), so the simulator
+       can execute the plan; ``joint_plan`` in ``trajectory.json`` says how far it departs from
+       the path.  ``clearance`` is then measured at those camera positions.
 
 Poses are 4x4 camera-to-world in the OpenCV camera frame (x right, y down, z
 forward), world RAS+ metres, as in :mod:`room_pipeline.conventions`.
@@ -134,6 +141,8 @@ class TrajectoryParams:
     view_jitter_deg: float = 0.0         # RMS angle of the smooth view-direction jitter (0: off)
     view_jitter_time_s: float = 1.0      # correlation time (Gaussian sigma) of the jitter
     jitter_seed: int = 0
+    joint_plan: Any = None               # null: camera poses on the path | mapping (JointPlanParams keys): the
+                                         # poses are the forward kinematics of a joint-space plan (planning/joint_plan.py)
 
     def __post_init__(self) -> None:
         def num(name: str, integer: bool = False, optional: bool = False):
@@ -182,6 +191,17 @@ class TrajectoryParams:
             raise ConfigError(f"trajectory.kappa_max must be > 0 (1/m) or null, got {self.kappa_max}")
         if self.targets == "points" and self.points is None:
             raise ConfigError("trajectory.points is required when trajectory.targets is 'points'")
+        if self.joint_plan is not None:
+            from .joint_plan import JointPlanParams
+            if not isinstance(self.joint_plan, Mapping):
+                raise ConfigError(f"trajectory.joint_plan must be null or a mapping, got {self.joint_plan!r}")
+            self.joint_plan = {str(k): v for k, v in self.joint_plan.items()}
+            enabled = self.joint_plan.pop("enabled", True)
+            if not isinstance(enabled, bool):
+                raise ConfigError(f"trajectory.joint_plan.enabled must be true or false, got {enabled!r}")
+            JointPlanParams.from_dict(self.joint_plan)
+            if not enabled:                  # the section's settings are checked, then the path poses are used
+                self.joint_plan = None
         if self.points is not None and not isinstance(self.points, (str, os.PathLike, list, tuple, np.ndarray)):
             raise ConfigError(f"trajectory.points must be a list of [x, y, z] (m) or a target file path, got {self.points!r}")
 
@@ -768,6 +788,9 @@ class Trajectory:
     route_branches: list
     params: dict = dataclasses.field(default_factory=dict)
     start: dict = dataclasses.field(default_factory=dict)
+    path_poses: np.ndarray | None = None     # (T, 4, 4) the smoothed path's poses (rotation-minimising, no jitter)
+    joints: np.ndarray | None = None         # (T, 3) joint plan [q1 m, q2 rad, q3 m] (joint_plan on)
+    joint_plan: dict | None = None           # its report (planning/joint_plan.py)
 
     @property
     def positions(self) -> np.ndarray:
@@ -786,7 +809,11 @@ class Trajectory:
         return float(self.clearance.min())
 
     def summary(self) -> dict:
-        return {"frames": int(len(self.timestamps)), "duration_s": self.duration, "length_m": self.length,
+        jp = {} if self.joint_plan is None else {
+            "joint_plan_departure_median_mm": self.joint_plan["departure_from_path_mm"]["median"],
+            "joint_plan_departure_max_mm": self.joint_plan["departure_from_path_mm"]["max"],
+            "joint_plan_view_departure_median_deg": self.joint_plan["view_departure_from_path_deg"]["median"]}
+        return {**jp, "frames": int(len(self.timestamps)), "duration_s": self.duration, "length_m": self.length,
                 "max_curvature_per_m": float(self.max_curvature), "kappa_max_per_m": float(self.kappa_max),
                 "min_clearance_m": self.min_clearance,
                 "min_clearance_minus_margin_m": float((self.clearance - self.margin).min()),
@@ -801,8 +828,12 @@ class Trajectory:
                       "margin": "m", "curvature": "1/m", "speed": "m/s", "rate": "Hz"},
             "pose": "4x4 camera-to-world; camera frame OpenCV (x right, y down, z forward = view direction); "
                     "world RAS+ metres",
-            "orientation": "view along the path tangent; roll by parallel transport (rotation-minimising frame); "
-                           f"image up (camera -y) nearest world {self.params.get('image_up', 'anterior')} at the start",
+            "orientation": ("view along the path tangent; roll by parallel transport (rotation-minimising frame); "
+                            f"image up (camera -y) nearest world {self.params.get('image_up', 'anterior')} at the start")
+                           + ("" if self.joints is None else
+                              "; that is path_pose: pose is the forward kinematics of the joint plan q aimed at it "
+                              "(joint_plan)"),
+            "joint_plan": self.joint_plan,
             "rate_hz": float(self.rate_hz),
             "target": self.target.to_dict(),
             "start": self.start,
@@ -812,7 +843,10 @@ class Trajectory:
                         "pose": np.round(self.poses[i], 12).tolist(),
                         "arclength": float(self.arclength[i]), "branch_id": int(self.branch_id[i]),
                         "clearance": float(self.clearance[i]), "curvature": float(self.curvature[i]),
-                        "speed": float(self.speed[i])} for i in range(len(self.timestamps))],
+                        "speed": float(self.speed[i]),
+                        **({} if self.path_poses is None else {"path_pose": np.round(self.path_poses[i], 12).tolist()}),
+                        **({} if self.joints is None else {"q": [float(v) for v in self.joints[i]]})}
+                       for i in range(len(self.timestamps))],
         }
 
     def to_tum(self) -> str:
@@ -1018,7 +1052,24 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
     info.stop_distance = float(np.linalg.norm(traj.positions[-1] - info.requested))
     traj.target = info
     traj.start = start_doc
+    if params.joint_plan is not None:
+        _plan_in_joint_space(traj, fn, params, geometry or DEFAULT_GEOMETRY)
     return traj
+
+
+def _plan_in_joint_space(traj: Trajectory, fn: SdfFn, params: TrajectoryParams, geometry: ScopeGeometry) -> None:
+    """Replace the camera poses by the forward kinematics of a joint plan aimed at them (step 7)."""
+    from ..robot.pybullet_sim import Route
+    from .joint_plan import JointPlanParams, plan_joints
+
+    route = Route(traj.path_poses[:, :3, 3], traj.arclength, traj.path_poses[:, :3, :3])
+    q, poses, report = plan_joints(route, traj.poses, traj.arclength, traj.timestamps, fn, geometry,
+                                   JointPlanParams.from_dict(params.joint_plan))
+    traj.poses = poses
+    traj.joints = q
+    traj.clearance = -np.asarray(fn(poses[:, :3, 3]), float)
+    report["camera_clearance_minus_margin_min_mm"] = float((traj.clearance - traj.margin).min() * 1e3)
+    traj.joint_plan = report
 
 
 def _build(graph, route: _Route, res: SmoothResult, fn: SdfFn, kmax: float, params: TrajectoryParams,
@@ -1075,6 +1126,9 @@ def _build(graph, route: _Route, res: SmoothResult, fn: SdfFn, kmax: float, para
     X = pos(sk)
     T = tangent(sk)
     R = rotation_minimising_frames(X, T, initial_down(T[0], params.image_up))
+    path_poses = np.tile(np.eye(4), (len(ts), 1, 1))
+    path_poses[:, :3, :3] = R
+    path_poses[:, :3, 3] = X
     if params.view_jitter_deg > 0:
         rng = np.random.default_rng(params.jitter_seed)
         w = rng.normal(size=(len(ts), 3))
@@ -1102,7 +1156,7 @@ def _build(graph, route: _Route, res: SmoothResult, fn: SdfFn, kmax: float, para
     return Trajectory(timestamps=ts, poses=poses, arclength=sk, branch_id=branch.astype(np.int64),
                       clearance=clear, curvature=curv(sk), speed=np.interp(sk, sd, v), margin=margin,
                       target=info, kappa_max=kmax, rate_hz=params.rate_hz, max_curvature=float(kd.max()),
-                      route_branches=chain, params=params.to_dict())
+                      route_branches=chain, params=params.to_dict(), path_poses=path_poses)
 
 
 def plan_trajectories(graph: CentrelineGraph, sdf_fn, params: TrajectoryParams | None = None,

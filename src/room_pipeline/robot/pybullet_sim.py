@@ -114,6 +114,7 @@ from .kinematics import ScopeGeometry, kappa
 
 INSERTION_MODELS = ("kinematic", "passive")
 FRICTION_MODELS = ("switch", "dynamic")
+TRACK_MODES = ("joints", "pose")
 
 
 # --------------------------------------------------------------------------- parameters
@@ -169,6 +170,7 @@ class SimParams:
     roll_free_q1_fraction: float = 0.15     # ... and follows the IK's q2 fully above this (linear between)
     roll_hold_project: bool = False         # held: bend projected on the held plane | false: full bend, nearer half-plane
     insertion_by_velocity: bool = True      # the base's velocity is set each step (friction sees the slip)
+    track: str = "joints"                   # joints: command the plan's joint trajectory (if it has one) | pose: IK
 
     def __post_init__(self) -> None:
         ints = ("seed", "solver_iterations", "n_links", "passive_shaft_links", "controller_iterations",
@@ -192,6 +194,8 @@ class SimParams:
         for name in ("actuation", "crop_mesh", "insertion_by_velocity", "roll_hold_project"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"simulate.{name} must be true or false, got {getattr(self, name)!r}")
+        if self.track not in TRACK_MODES:
+            raise ConfigError(f"simulate.track must be one of {', '.join(TRACK_MODES)}, got {self.track!r}")
         if self.insertion_model not in INSERTION_MODELS:
             raise ConfigError(f"simulate.insertion_model must be one of {', '.join(INSERTION_MODELS)}, "
                               f"got {self.insertion_model!r}")
@@ -388,7 +392,11 @@ class Route:
 
     @classmethod
     def from_trajectory(cls, trajectory) -> "Route":
-        return cls(trajectory.poses[:, :3, 3], trajectory.arclength, trajectory.poses[:, :3, :3])
+        """The shaft's path: the trajectory's ``path_poses`` (a joint-space plan's path) when it has them,
+        else its camera poses."""
+        P = getattr(trajectory, "path_poses", None)
+        P = trajectory.poses if P is None else P
+        return cls(P[:, :3, 3], trajectory.arclength, P[:, :3, :3])
 
     def frame(self, s: float) -> np.ndarray:
         S = self.s
@@ -1153,9 +1161,17 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         B[:3, :3] = B[:3, :3] @ _rz(-q_now[1])
         return lambda q3: _advance(B, q3 - q_now[2])
 
+    # the command: the plan's joints (a joint-space plan with the shaft on its path: the plan and the
+    # controller's kinematic model are the same), else the pose IK on the planned camera poses
+    plan_q = getattr(trajectory, "joints", None)
+    use_joints = params.track == "joints" and plan_q is not None and not passive
+    if use_joints:
+        plan_q = np.asarray(plan_q, float)
+        if plan_q.shape != (T, 3) or not np.all(np.isfinite(plan_q)):
+            raise InputError(f"simulate: the trajectory's joint plan must be ({T}, 3) finite numbers")
     # initial command: straight-on estimate of the base, then the controller
     q_ref = np.array([0.0, 0.0, float(trajectory.arclength[0]) - geometry.l])
-    q0 = ctrl.command(poses[0], q_ref, route.frame)
+    q0 = plan_q[0].copy() if use_joints else ctrl.command(poses[0], q_ref, route.frame)
     signal.add(0.0, q0)
     q_act_now = act(0.0)
     apply(q_act_now)
@@ -1216,7 +1232,8 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
                 load_wall()
         sim.update_friction()
         q_prev = signal(ts[k - 1])
-        qk = rate_limit(ctrl.command(poses[k], q_prev, base_frame_fn()), q_prev, ts[k] - ts[k - 1], max_rate)
+        q_target = plan_q[k] if use_joints else ctrl.command(poses[k], q_prev, base_frame_fn())
+        qk = rate_limit(q_target, q_prev, ts[k] - ts[k - 1], max_rate)
         signal.add(ts[k], qk)
         n = max(1, int(round((ts[k] - ts[k - 1]) / dt)))
         h = (ts[k] - ts[k - 1]) / n
@@ -1281,6 +1298,8 @@ def _simulate(trajectory, mesh: Mesh | None, params: SimParams | None = None,
         "penetration_mm": {"max": float(pen.max() * 1e3)},
         "actuation_delay_s": delay,
         "insertion_model": params.insertion_model,
+        "command": ("the plan's joint trajectory (trajectory.json frames[].q), rate-limited" if use_joints
+                    else "pose IK on the planned camera poses (robot/controller.py)"),
         "mesh": None if mesh is None else {"faces": int(mesh.n_faces), "cropped": bool(use_crop), "builds": n_builds,
                                            "faces_loaded_mean": float(np.mean(faces_loaded)) if faces_loaded else 0.0,
                                            "build_time_s": t_build,

@@ -62,9 +62,17 @@ def _read_inputs(trajectory_json, graph_json, key: str):
         traj = types.SimpleNamespace(
             timestamps=np.array([f["timestamp"] for f in frames], float),
             poses=np.array([f["pose"] for f in frames], float),
-            arclength=np.array([f["arclength"] for f in frames], float))
+            arclength=np.array([f["arclength"] for f in frames], float),
+            # a joint-space plan (trajectory.joint_plan): the path the shaft follows and the joints to command
+            path_poses=(np.array([f["path_pose"] for f in frames], float) if frames and "path_pose" in frames[0]
+                        else None),
+            joints=np.array([f["q"] for f in frames], float) if frames and "q" in frames[0] else None)
         if traj.poses.ndim != 3 or traj.poses.shape[1:] != (4, 4):
             raise ValueError(f"poses of shape {traj.poses.shape}, expected (N, 4, 4)")
+        if traj.path_poses is not None and traj.path_poses.shape != traj.poses.shape:
+            raise ValueError(f"path_pose of shape {traj.path_poses.shape}, expected {traj.poses.shape}")
+        if traj.joints is not None and traj.joints.shape != (len(frames), 3):
+            raise ValueError(f"q of shape {traj.joints.shape}, expected ({len(frames)}, 3)")
         path = graph_json
         graph = read_json(path)
         root_radius = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])

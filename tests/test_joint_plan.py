@@ -1,0 +1,189 @@
+"""Joint-space planning (planning/joint_plan.py): the planned camera poses are the forward kinematics of a
+joint plan the scope can execute, within the joint and rate limits, and the simulator commanding that plan
+tracks it (issue #17: simulated vs planned measures the dynamics, not the plan's unreachability)."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from room_pipeline.anatomy.centreline import from_airway_tree
+from room_pipeline.anatomy.phantom import PhantomParams, grow_tree
+from room_pipeline.anatomy.tree import AirwayTree, Branch
+from room_pipeline.errors import ConfigError
+from room_pipeline.planning.joint_plan import JointPlanParams, camera_poses, plan_joints
+from room_pipeline.planning.trajectory import TrajectoryParams, plan_path
+from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY
+from room_pipeline.robot.pybullet_sim import Route, SimParams, simulate
+from room_pipeline.stages.simulate import _read_inputs
+
+from .test_simulation import lumen_mesh, straight_trajectory
+
+G = DEFAULT_GEOMETRY
+MM = 1e-3
+JOINT = {"direction_weight_mm": 10.0}     # the config's joint_plan mapping (other keys: JointPlanParams defaults)
+
+
+def _tube_sdf(radius=4e-3, length=0.4):
+    tree = AirwayTree([Branch(0, -1, 0, np.zeros(3), np.array([0.0, 0.0, -length]), radius)])
+    return tree, (lambda p: tree.sdf(p)[0])
+
+
+@pytest.fixture(scope="module")
+def planned():
+    """A phantom path (generation 3, a turn into branch 3) planned in joint space, and the tree."""
+    tree = grow_tree(PhantomParams(max_generation=3, lung_points=4000), np.random.default_rng(0))
+    graph = from_airway_tree(tree, 1e-3)
+    tr = plan_path(graph, 3, tree, TrajectoryParams(start_offset_mm=90.0, joint_plan=JOINT))
+    return tree, tr
+
+
+def test_straight_path_plans_a_straight_scope():
+    """Zero curvature: the scope stays straight (q1 = 0), unrolled (q2 = 0), the camera on the path."""
+    tree, fn = _tube_sdf()
+    tr = straight_trajectory([0.0, 0.0, -0.06], [0.0, 0.0, -1.0], 0.05, 5e-3)
+    route = Route(tr.poses[:, :3, 3], tr.arclength, tr.poses[:, :3, :3])
+    q, poses, rep = plan_joints(route, tr.poses, tr.arclength, tr.timestamps, fn, G, JointPlanParams())
+    assert np.abs(q[:, 0]).max() < 1e-9 and np.abs(q[:, 1]).max() < 1e-9
+    np.testing.assert_allclose(q[:, 2], tr.arclength - G.l, atol=1e-9)
+    assert rep["departure_from_path_mm"]["max"] < 1e-6
+    assert rep["view_departure_from_path_deg"]["max"] < 1e-4
+    assert rep["roll_vs_path_deg"]["straight_stretch_change_max"] < 1e-6
+
+
+@pytest.mark.slow
+def test_plan_is_forward_kinematics_within_limits(planned):
+    """Poses = FK(q) with the base on the path (the simulator's kinematic model); |q1| <= q1_max; the
+    joint rates within the plan's limits; the departure from the path and the clearances recorded."""
+    _, tr = planned
+    assert tr.joints is not None and tr.path_poses is not None
+    route = Route(tr.path_poses[:, :3, 3], tr.arclength, tr.path_poses[:, :3, :3])
+    np.testing.assert_allclose(camera_poses(route, tr.joints, G), tr.poses, atol=1e-12)
+    p = JointPlanParams.from_dict(JOINT)
+    assert np.abs(tr.joints[:, 0]).max() <= G.q1_max + 1e-15
+    dt = np.diff(tr.timestamps)
+    rate = np.abs(np.diff(tr.joints, axis=0)) / dt[:, None]
+    assert rate[:, 0].max() <= p.max_rate_q1_mm_s * MM * (1 + 1e-9)
+    assert rate[:, 1].max() <= math.radians(p.max_rate_q2_deg_s) * (1 + 1e-9)
+    assert rate[:, 2].max() <= p.max_rate_q3_mm_s * MM * (1 + 1e-9)
+    # the path has a real turn, so the plan bends, and its camera stays in the lumen
+    assert np.abs(tr.joints[:, 0]).max() > 0.05 * G.q1_max
+    rep = tr.joint_plan
+    assert rep["camera_clearance_min_mm"] > 0.0
+    for key in ("departure_from_path_mm", "view_departure_from_path_deg"):
+        assert set(rep[key]) == {"median", "p95", "max"}
+    np.testing.assert_allclose(tr.clearance, -tree_sdf(planned[0], tr.poses[:, :3, 3]), atol=1e-12)
+    # the straight stretch's roll in the plan itself: q2 moves at most roll_rate_straight_deg_s there
+    straight = np.abs(tr.joints[:-1, 0]) < p.roll_hold_q1_fraction * G.q1_max
+    dq2 = np.abs(np.diff(tr.joints[:, 1]))[straight]
+    assert dq2.max(initial=0.0) <= math.radians(p.roll_rate_straight_deg_s) * dt.max() * (1 + 1e-9)
+
+
+def tree_sdf(tree, p):
+    return tree.sdf(p)[0]
+
+
+@pytest.mark.slow
+def test_plan_is_deterministic(planned):
+    tree, tr = planned
+    graph = from_airway_tree(tree, 1e-3)
+    again = plan_path(graph, 3, tree, TrajectoryParams(start_offset_mm=90.0, joint_plan=JOINT))
+    assert json.dumps(again.to_dict()) == json.dumps(tr.to_dict())
+
+
+@pytest.mark.slow
+def test_trajectory_json_carries_the_plan_and_simulate_reads_it(planned, tmp_path):
+    _, tr = planned
+    doc = tr.to_dict()
+    f0 = doc["frames"][0]
+    assert len(f0["q"]) == 3 and np.asarray(f0["path_pose"]).shape == (4, 4)
+    assert doc["joint_plan"]["departure_from_path_mm"]["max"] >= 0.0
+    (tmp_path / "trajectory.json").write_text(json.dumps(doc))
+    graph = {"branches": [{"id": 0, "parent": -1, "mean_radius": 0.008}]}
+    (tmp_path / "graph.json").write_text(json.dumps(graph))
+    traj, _ = _read_inputs(tmp_path / "trajectory.json", tmp_path / "graph.json", "p/s")
+    np.testing.assert_allclose(traj.joints, tr.joints, atol=1e-12)
+    np.testing.assert_allclose(traj.path_poses, tr.path_poses, atol=1e-12)
+    doc["frames"][3]["q"] = [0.0, 1.0]
+    (tmp_path / "trajectory.json").write_text(json.dumps(doc))
+    from room_pipeline.errors import InputError
+    with pytest.raises(InputError, match="cannot read .*trajectory.json"):
+        _read_inputs(tmp_path / "trajectory.json", tmp_path / "graph.json", "p/s")
+
+
+def test_bad_joint_plan_config_is_one_config_error():
+    with pytest.raises(ConfigError, match="unknown key 'nope'"):
+        TrajectoryParams(joint_plan={"nope": 1.0})
+    with pytest.raises(ConfigError, match="direction_weight_mm"):
+        TrajectoryParams(joint_plan={"direction_weight_mm": -1.0})
+    with pytest.raises(ConfigError, match="body_points"):
+        TrajectoryParams(joint_plan={"body_points": 1})
+    with pytest.raises(ConfigError, match="joint_plan must be null or a mapping"):
+        TrajectoryParams(joint_plan=3.0)
+    with pytest.raises(ConfigError, match="simulate.track"):
+        SimParams(track="nope")
+
+
+def arc_trajectory(kappa=20.0, straight=0.06, arc=0.06, speed=5e-3, rate=10.0):
+    """A path straight for ``straight`` m along -z, then a circular arc of curvature ``kappa`` (1/m) in the
+    x-z plane: camera poses on it looking along it (rotation-minimising: x fixed = the arc's binormal)."""
+    n = int(math.ceil((straight + arc) / speed * rate))
+    s = np.linspace(0.0, straight + arc, n + 1)
+    a = np.clip(s - straight, 0.0, None) * kappa
+    P = np.stack([np.where(s > straight, (1 - np.cos(a)) / kappa, 0.0), np.zeros_like(s),
+                  -np.minimum(s, straight) - np.where(s > straight, np.sin(a) / kappa, 0.0)], axis=1)
+    t = np.stack([np.sin(a), np.zeros_like(s), -np.cos(a)], axis=1)
+    x = np.tile([0.0, 1.0, 0.0], (n + 1, 1))
+    tr = straight_trajectory([0.0, 0.0, 0.0], [0.0, 0.0, -1.0], straight + arc, speed, rate)
+    tr.poses[:, :3, 0], tr.poses[:, :3, 1], tr.poses[:, :3, 2], tr.poses[:, :3, 3] = x, np.cross(t, x), t, P
+    tr.arclength = s
+    tr.timestamps = np.arange(n + 1) / rate
+    return tr
+
+
+def test_arc_plan_bends_within_limits_and_the_simulator_tracks_it():
+    """A turn the scope must bend for (20 1/m, under kappa_max 45.7), in free space (SDF: all lumen): the plan
+    bends, stays within |q1| <= q1_max and the rate limits, poses = FK(q); commanding its joints (no actuation
+    error) the simulated camera is the plan to the free-space kinematics bound (0.5 mm) without rolling."""
+    tr = arc_trajectory()
+    route = Route(tr.poses[:, :3, 3], tr.arclength, tr.poses[:, :3, :3])
+    p = JointPlanParams()
+    q, poses, rep = plan_joints(route, tr.poses, tr.arclength, tr.timestamps, lambda x: np.full(len(x), -1.0), G, p)
+    np.testing.assert_allclose(camera_poses(route, q, G), poses, atol=1e-12)
+    assert 0.2 * G.q1_max < np.abs(q[:, 0]).max() <= G.q1_max
+    rate = np.abs(np.diff(q, axis=0)) / np.diff(tr.timestamps)[:, None]
+    assert rate[:, 0].max() <= p.max_rate_q1_mm_s * MM * (1 + 1e-9)
+    assert rate[:, 2].max() <= p.max_rate_q3_mm_s * MM * (1 + 1e-9)
+    assert rep["departure_from_path_mm"]["max"] < 5.0     # the arc after a straight is not reachable exactly
+    planned_tr = arc_trajectory()
+    planned_tr.path_poses, planned_tr.joints, planned_tr.poses = tr.poses.copy(), q, poses
+    res = simulate(planned_tr, None, SimParams(actuation=False))
+    assert "joint trajectory" in res.report["command"]
+    assert res.report["tracking_error_mm"]["max"] < 0.5
+    assert res.report["camera_roll_deg"]["max_abs"] < 1.0
+
+
+@pytest.mark.slow
+def test_simulated_scope_tracks_the_joint_plan_in_the_airway(planned):
+    """In the phantom's lumen with the default physics and actuation (delay, gain): the issue's bounds for
+    simulated vs planned (median <= 1 mm, max <= 2.5 mm, view median <= 2 deg) and straight-stretch roll
+    (<= 1 deg), on a path the plan can reach."""
+    tree, tr = planned
+    P = np.vstack([tr.path_poses[:, :3, 3], tr.path_poses[0, :3, 3] - 0.065 * tr.path_poses[0, :3, 2]])
+    mesh = lumen_mesh(tree, P.min(0) - 0.012, P.max(0) + 0.012)
+    res = simulate(tr, mesh, SimParams())
+    r = res.report
+    assert r["tracking_error_mm"]["median"] <= 1.0 and r["tracking_error_mm"]["max"] <= 2.5
+    assert r["tracking_error_deg"]["median"] <= 2.0
+    assert r["camera_roll_deg"]["straight_stretch_change_max"] <= 1.0
+
+
+def test_joint_plan_enabled_false_keeps_the_path_poses_and_still_checks_the_section():
+    assert TrajectoryParams(joint_plan={"enabled": False, "direction_weight_mm": 10.0}).joint_plan is None
+    assert TrajectoryParams(joint_plan={"enabled": True, "direction_weight_mm": 10.0}).joint_plan == {"direction_weight_mm": 10.0}
+    with pytest.raises(ConfigError, match="unknown key"):
+        TrajectoryParams(joint_plan={"enabled": False, "nope": 1.0})
+    with pytest.raises(ConfigError, match="enabled must be true or false"):
+        TrajectoryParams(joint_plan={"enabled": "yes"})
