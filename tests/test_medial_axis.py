@@ -316,6 +316,7 @@ def test_real_masks(parts):
     zmax = crop.index_to_world(np.argwhere(crop.data > 0).astype(float))[:, 2].max()
     assert g.root.points[0][2] > zmax - 15 * MM
     assert g.root.mean_radius > np.median([b.mean_radius for b in g.branches])
+    assert res.report["root_centred"] is False        # round tracheas: no medial sheet
 
 
 def _arch_mask(island: bool = False, h: float = 0.8) -> Volume:
