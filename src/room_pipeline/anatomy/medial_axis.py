@@ -20,7 +20,9 @@ Method (Esposito et al., ROOM; written here from the description):
    points closer than ``max(link_voxels, link_radius_factor * r)`` are linked
    (edge weight = length x a centring penalty that favours the locally widest
    points); the root is the most superior point of the largest-radius part (the
-   trachea entry); a shortest-path tree from the root is grown and branches are
+   trachea entry; on a flattened trachea, whose medial set is a sheet, the middle
+   of its top cross-section, and the sheet is crossed by one trunk, the centroid
+   path of its cross-sections); a shortest-path tree from the root is grown and branches are
    extracted TEASAR-like (farthest remaining point -> path back to the
    skeleton -> invalidate the points within ``invalidation_scale * r +
    invalidation_voxels`` of it);
