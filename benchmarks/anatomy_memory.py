@@ -48,7 +48,8 @@ def main() -> None:
         wall = time.perf_counter() - t0
         rows = []
         for st in stages:
-            m = read_metrics_file(Path(tmp) / "bench" / "metrics" / f"{st}.json")   # + its timing file
+            name = f"{st}_sequence_000.json" if st == "trajectory" else f"{st}.json"   # per-sequence stage
+            m = read_metrics_file(Path(tmp) / "bench" / "metrics" / name)   # + its timing file
             rows.append({"stage": st, "wall_s": m.get("wall_time_s"), "peak_rss_mb": m.get("peak_rss_mb")})
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     load = os.getloadavg()[0]

@@ -139,10 +139,10 @@ def _m_split3(t: Volume):
     return Volume(d, t.affine)
 
 
-def _m_islands(t: Volume):
+def _m_islands(t: Volume, n: int = 10):
     d = t.data.copy()
-    rng = np.random.default_rng(0)
-    for _ in range(10):
+    rng = np.random.default_rng(0 if n == 10 else n)
+    for _ in range(n):
         i, j, k = (int(rng.integers(2, n - 2)) for n in d.shape)
         if not d[i - 2:i + 3, j - 2:j + 3, k - 2:k + 3].any():
             d[i, j, k] = 1
@@ -221,6 +221,7 @@ MASK_ACCEPTS = {  # name -> (make, entry extras, expected repairs regex or None)
     "probability_with_threshold": (_m_prob, {"mask_threshold": 0.5}, None),
     "label_map_with_label": (_m_labels, {"mask_label": 1}, None),
     "islands_dropped": (_m_islands, {}, r"kept the largest of \d+ 26-connected pieces"),
+    "islands_90_dropped": (lambda t: _m_islands(t, 90), {}, r"kept the largest of \d+ 26-connected pieces"),
     "bronchus_cut": (_m_cut, {}, r"kept the largest of \d+ 26-connected pieces"),
     "lps_flipped_header": (lambda t: Volume(np.ascontiguousarray(t.data[::-1, ::-1]),
                                             np.diag([-1, -1, 1, 1.0]) @ t.affine
@@ -471,7 +472,7 @@ def test_config_error_of_a_late_stage_reported_by_an_early_one(tree, tmp_path, b
 def test_corpus_size():
     n = (len(MASK_ERRORS) + len(MASK_ACCEPTS) + len(CT_ERRORS) + 3 + 1 + len(FILE_ERRORS) + len(DICOM_ERRORS) + 2
          + len(CONFIG_ERRORS) + 1 + 2)     # + 3 CTs repaired, the abdominal CT, 2 DICOM accepts, 1 + 2 run cases
-    assert n == 84, n
+    assert n == 85, n
 
 
 # ------------------------------------------------------------------ stale outputs and temp files

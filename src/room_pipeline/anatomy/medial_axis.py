@@ -20,7 +20,9 @@ Method (Esposito et al., ROOM; written here from the description):
    points closer than ``max(link_voxels, link_radius_factor * r)`` are linked
    (edge weight = length x a centring penalty that favours the locally widest
    points); the root is the most superior point of the largest-radius part (the
-   trachea entry); a shortest-path tree from the root is grown and branches are
+   trachea entry; on a flattened trachea, whose medial set is a sheet, the middle
+   of its top cross-section, and the sheet is crossed by one trunk, the centroid
+   path of its cross-sections); a shortest-path tree from the root is grown and branches are
    extracted TEASAR-like (farthest remaining point -> path back to the
    skeleton -> invalidate the points within ``invalidation_scale * r +
    invalidation_voxels`` of it);
@@ -395,6 +397,19 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     bidx = np.flatnonzero(big)
     trachea = bidx[subcomp == subcomp[np.searchsorted(bidx, imax)]]
     root = int(trachea[np.argmax(pts[trachea, 2])])
+    # The entry is the middle of the trachea's top cross-section.  On a round trachea the most superior wide
+    # point is on the axis; on a flattened one (fibrotic lungs: 10 x 24 mm) the medial surface is a sheet and
+    # that point can sit anywhere on its top edge, down to where the lumen is barely wider than the cut-off
+    # radius.  When the trachea's medial points below its top spread across it by more than 0.75 x its radius
+    # and most of them lie on a sheet (``_sheet_like``), the root moves to the middle of the top cross-section
+    # and the skeleton crosses the sheet by one trunk (``_sheet_trunk``).
+    centre, axis_dir, below, spread = _top_centre(root, trachea, pts, float(rad[imax]))
+    sheet_frac = float(np.mean(_sheet_like(below, kd, pts, rad, voxel))) if len(below) >= 10 else 0.0
+    rep["trachea_top_spread_mm"] = round(spread / 1e-3, 3)
+    rep["trachea_top_sheet_fraction"] = round(sheet_frac, 3)
+    rep["root_centred"] = bool(spread > 0.75 * float(rad[centre]) and sheet_frac > 0.5)
+    if rep["root_centred"]:
+        root = centre
 
     in_root = comp == comp[root]
     dropped_comps = int(ncomp - 1)
@@ -406,7 +421,7 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         log.warning("medial axis: dropped %d component(s) not connected to the trachea (%d medial cluster points, "
                     "largest %d)", dropped_comps, dropped_pts, int(np.sort(sizes)[-2]) if ncomp > 1 else 0)
 
-    def skeleton(root: int):
+    def skeleton(root: int, sheet: bool = False):
         dist, pred = csgraph.dijkstra(G, directed=False, indices=root, return_predecessors=True)
         valid = np.isfinite(dist)
         in_skel = np.zeros(M, dtype=bool)
@@ -414,13 +429,32 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         valid[root] = False
         skel_parent = np.full(M, -1, dtype=np.int64)
         n_paths = 0
+        on_sheet = np.zeros(M, dtype=bool)
+        if sheet:
+            # a flattened trachea: its medial sheet is crossed by one trunk, the centroid path of its cross-
+            # sections (_sheet_trunk); no path starts on the sheet (its edges would sprout lines beside the
+            # trachea) and a path from a bronchus that reaches the sheet is joined to the nearest trunk point
+            on_sheet[_trachea_sheet(root, G, pts, rad, voxel, params)] = True
+            trunk = _sheet_trunk(root, on_sheet, pts, rad, axis_dir, voxel)
+            rep["trachea_sheet_points"] = int(on_sheet.sum())
+            rep["trachea_trunk_points"] = int(len(trunk))
+            skel_parent[trunk[1:]] = trunk[:-1]
+            in_skel[trunk] = True
+            valid[on_sheet | in_skel] = False
+            radii = params.invalidation_scale * rad[trunk] + params.invalidation_voxels * voxel
+            for lst in kd.query_ball_point(pts[trunk], radii):
+                valid[lst] = False
+            trunk_kd = cKDTree(pts[trunk])
+            n_paths = 1
         while valid.any():
             i = int(np.argmax(np.where(valid, dist, -np.inf)))
             path = []
             j = i
-            while not in_skel[j]:
+            while not in_skel[j] and not on_sheet[j]:
                 path.append(j)
                 j = int(pred[j])
+            if not in_skel[j]:
+                j = int(trunk[trunk_kd.query(pts[j])[1]])
             path_arr = np.array(path, dtype=np.int64)
             skel_parent[path_arr] = np.append(path_arr[1:], j)
             in_skel[path_arr] = True
@@ -429,9 +463,23 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
             radii = params.invalidation_scale * rad[path_arr] + params.invalidation_voxels * voxel
             for lst in kd.query_ball_point(pts[path_arr], radii):
                 valid[lst] = False
+        if sheet:
+            # distances along the skeleton (parents before children), the order the root rules walk in
+            dist = np.full(M, np.inf)
+            dist[root] = 0.0
+            kids: dict[int, list[int]] = {}
+            for n in np.flatnonzero(skel_parent >= 0):
+                kids.setdefault(int(skel_parent[n]), []).append(int(n))
+            stack = [root]
+            while stack:
+                a = stack.pop()
+                for b in kids.get(a, ()):
+                    dist[b] = dist[a] + float(np.linalg.norm(pts[b] - pts[a]))
+                    stack.append(b)
         return in_skel, skel_parent, n_paths, dist
 
-    in_skel, skel_parent, n_paths, dist = skeleton(root)
+    rep["trachea_sheet_points"] = 0
+    in_skel, skel_parent, n_paths, dist = skeleton(root, sheet=rep["root_centred"])
     # The root must be an end of the skeleton (the trachea's free end).  When the most superior wide point is
     # not one (trachea cut just above the carina, flattened or touching the border: the skeleton leaves it in
     # two directions), the route would start with a zero-length root branch: re-root at the most superior
@@ -637,6 +685,114 @@ def _root_arms(root: int, in_skel: np.ndarray, parent: np.ndarray, dist: np.ndar
         far = np.inf if k == longest else float(kd.query(pts[arm == k])[0].max())
         res[k] = (length, wide_len, far)
     return res
+
+
+def _top_centre(root: int, trachea: np.ndarray, pts: np.ndarray, r_max: float
+                ) -> tuple[int, np.ndarray, np.ndarray, float]:
+    """The middle of the trachea's top cross-section, the trachea's axis there, and how its medial points
+    spread below the top.
+
+    The top slab is the trachea points within ``r_max`` below ``root``'s height.  Their horizontal position is
+    fitted as a straight line in height (a leaning trachea's axis); the middle is the slab point nearest that
+    line at ``root``'s height and the axis is the line's downward direction.  Below the top slab (``r_max`` to
+    ``2.5 r_max`` down: a closed end's medial cone lies within ``r_max`` of it), the trachea points and their
+    largest distance from the line are returned: about a voxel on a round trachea, whose medial set is its
+    axis; about the half-width less the edge radius on a flattened one, whose medial set is a sheet."""
+    top = pts[root, 2]
+    band = trachea[pts[trachea, 2] >= top - r_max]
+    q = pts[band]
+    A = np.stack([np.ones(len(q)), q[:, 2] - top], axis=1)
+    coef = np.linalg.lstsq(A, q[:, :2], rcond=None)[0] if len(q) >= 2 else np.array([q[0, :2], [0.0, 0.0]])
+    c = np.array([coef[0, 0], coef[0, 1], top])
+    down = -np.array([coef[1, 0], coef[1, 1], 1.0])
+    z = pts[trachea, 2]
+    below = trachea[(z < top - r_max) & (z >= top - 2.5 * r_max)]
+    qb = pts[below]
+    line = np.stack([np.ones(len(qb)), qb[:, 2] - top], axis=1) @ coef
+    spread = float(np.linalg.norm(qb[:, :2] - line, axis=1).max()) if len(qb) else 0.0
+    return int(band[np.argmin(np.linalg.norm(q - c, axis=1))]), down / np.linalg.norm(down), below, spread
+
+
+#: second / first eigenvalue of the local medial points' covariance above which they form a sheet
+SHEET_RATIO = 0.25
+
+
+def _sheet_like(i: np.ndarray, kd: cKDTree, pts: np.ndarray, rad: np.ndarray, voxel: float) -> np.ndarray:
+    """Whether the medial set is locally two-dimensional at points ``i``: the cluster points within the point's
+    own radius (at least 2 voxels; at least 6 of them) spread in a second direction, the second eigenvalue of
+    their covariance > 0.25 x the first (a disc gives 1, the half-disc at a sheet's edge 0.28, the scattered
+    points along a tube's axis ~0.02)."""
+    out = np.zeros(len(i), dtype=bool)
+    for k, (n, nb) in enumerate(zip(i, kd.query_ball_point(pts[i], np.maximum(rad[i], 2.0 * voxel)))):
+        if len(nb) < 6:
+            continue
+        q = pts[nb] - pts[nb].mean(axis=0)
+        ev = np.linalg.eigvalsh(q.T @ q / len(nb))
+        out[k] = ev[1] > SHEET_RATIO * ev[2]
+    return out
+
+
+def _trachea_sheet(root: int, G, pts: np.ndarray, rad: np.ndarray, voxel: float,
+                   params: MedialAxisParams) -> np.ndarray:
+    """The medial sheet of a flattened trachea: the points where the medial set is locally two-dimensional
+    (:func:`_sheet_like`), connected to ``root`` through such points, and the points within TEASAR's
+    invalidation distance of them."""
+    kd = cKDTree(pts)
+    sheet = np.zeros(len(pts), dtype=bool)
+    seen = np.zeros(len(pts), dtype=bool)
+    front = np.array([root])
+    seen[root] = True
+    G = G.tocsr()
+    while len(front):
+        ok = front[_sheet_like(front, kd, pts, rad, voxel)]
+        sheet[ok] = True
+        nxt = np.unique(np.concatenate([G.indices[G.indptr[i]:G.indptr[i + 1]] for i in ok])) if len(ok) else []
+        nxt = np.asarray(nxt, dtype=np.int64)
+        front = nxt[~seen[nxt]]
+        seen[front] = True
+    out = sheet.copy()
+    idx = np.flatnonzero(sheet)
+    for lst in kd.query_ball_point(pts[idx], params.invalidation_scale * rad[idx]
+                                   + params.invalidation_voxels * voxel):
+        out[lst] = True
+    return np.flatnonzero(out)
+
+
+def _sheet_trunk(root: int, on_sheet: np.ndarray, pts: np.ndarray, rad: np.ndarray, axis: np.ndarray,
+                 voxel: float) -> np.ndarray:
+    """The trunk across a flattened trachea's medial sheet: from ``root`` down, steps of half the root's radius
+    (>= a voxel), each to the sheet point nearest the centroid of the sheet points in the next cross-section
+    (a slab one step thick across the current direction, within the top's half-width of the path); the
+    direction follows the centroids.  Ends where a cross-section holds fewer than 3 sheet points or the path
+    would turn by more than 45 degrees in one step (the carina)."""
+    h = max(0.5 * float(rad[root]), voxel)
+    idx = np.flatnonzero(on_sheet)
+    if len(idx) == 0:
+        return np.array([root], dtype=np.int64)
+    q = pts[idx]
+    c = pts[root].copy()
+    d = axis.copy()
+    top = q[np.abs((q - c) @ d) <= 2.0 * h]
+    half = float(np.linalg.norm((top - c) - np.outer((top - c) @ d, d), axis=1).max()) + voxel if len(top) else 0.0
+    trunk = [root]
+    for _ in range(int(np.ceil(10.0 * np.ptp(q, axis=0).max() / h)) + 1):
+        g = c + h * d
+        off = q - g
+        ax = off @ d
+        lat = np.linalg.norm(off - np.outer(ax, d), axis=1)
+        sel = (np.abs(ax) <= 0.5 * h) & (lat <= half)
+        if sel.sum() < 3:
+            break
+        m = q[sel].mean(axis=0)
+        step = m - c
+        if not np.linalg.norm(step) > 0.25 * h or step @ d < 0.7 * np.linalg.norm(step):
+            break                                   # stalled, or turning (> 45 deg): the carina
+        d = step / np.linalg.norm(step)
+        c = m
+        n = int(idx[np.argmin(np.linalg.norm(q - m, axis=1))])
+        if n not in trunk:
+            trunk.append(n)
+    return np.array(trunk, dtype=np.int64)
 
 
 def _bridge_components(G, pts: np.ndarray, field: _Field, voxel: float, max_rounds: int = 20):
