@@ -43,6 +43,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from ..catalog import DEPTH_MODEL, RGB_SOURCES, SequencePaths
 from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import BackendUnavailable, ConfigError, InputError
@@ -52,7 +53,7 @@ from .metrics import MedianScaler, aggregate, fit_to_shape, frame_errors
 from .physics import LightModel, PhysicsParams, light_is_coaxial, physics_depth
 
 SCALINGS = ("metric", "median")
-INPUTS = ("rgb", "rgb_noisy")
+INPUTS = RGB_SOURCES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,7 +218,7 @@ def _baseline(kind: str) -> Callable[[str, DepthParams, SequenceInfo], Estimator
             return bl.ShadingSfS(name, params.shading_sfs or bl.ShadingParams())
         if info.output_dir is None:
             raise BackendUnavailable("train_mean: no output_dir to find the training mean in")
-        return bl.TrainMean(name, Path(info.output_dir) / params.cnn.checkpoint_patient / "depth_model"
+        return bl.TrainMean(name, Path(info.output_dir) / params.cnn.checkpoint_patient / DEPTH_MODEL
                             / bl.TRAIN_MEAN_FILE)
     return make
 
@@ -281,8 +282,8 @@ def sequence_samples(seq_dir: Path, input_folder: str = "rgb", stride: int = 1, 
     """Every ``stride``-th frame (at most ``max_frames``) of a rendered sequence among those that have both
     ``<input_folder>/frame_NNNN.png`` and ``depth/frame_NNNN.exr``; ``group`` defaults to the folder."""
     seq_dir = Path(seq_dir)
-    img_dir, depth_dir = seq_dir / input_folder, seq_dir / "depth"
-    calib = seq_dir / "calibration" / "camera_params.json"
+    sp = SequencePaths(seq_dir)
+    img_dir, depth_dir, calib = sp.folder(input_folder), sp.folder("depth"), sp.camera
     for p in (img_dir, depth_dir, calib):
         if not p.exists():
             raise InputError(f"{seq_dir}: missing {p.relative_to(seq_dir)} (render the sequence first)")

@@ -49,6 +49,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from ..catalog import METADATA, RGB_NOISY, RGB_SOURCES, SequencePaths
 from ..errors import ConfigError, InputError, RoomError
 from ..io.metrics import is_timing_file, merge_timings, timing_path
 
@@ -63,7 +64,7 @@ SECTIONS: tuple[tuple[str, str], ...] = (
     ("tables", "Paper tables"),
 )
 #: modalities shown as thumbnails, in column order (those the sequence has)
-THUMB_MODALITIES = ("rgb", "rgb_noisy", "depth", "relative_depth", "normals", "flow", "segmentation")
+THUMB_MODALITIES = ("rgb", RGB_NOISY, "depth", "relative_depth", "normals", "flow", "segmentation")
 #: colours of the 3-D view (RGB 0..1), also used by the legend
 COLOURS = {"airway": (0.86, 0.62, 0.56), "planned": (0.16, 0.35, 0.85), "simulated": (0.95, 0.50, 0.05),
            "rendered": (0.10, 0.65, 0.25), "scope": (0.25, 0.25, 0.28), "tip": (0.85, 0.05, 0.10)}
@@ -309,7 +310,7 @@ def find_patients(output_dir: Path) -> list[Path]:
 def find_sequence_dirs(patient: Path) -> list[Path]:
     """Sequence folders of a patient (sorted): sub-folders holding ``metadata/``."""
     return sorted(p for p in Path(patient).iterdir()
-                  if p.is_dir() and not p.name.startswith(".") and (p / "metadata").is_dir())
+                  if p.is_dir() and not p.name.startswith(".") and (p / METADATA).is_dir())
 
 
 # =========================================================================== section: summary
@@ -318,8 +319,8 @@ def find_sequence_dirs(patient: Path) -> list[Path]:
 def _sequence_row(seq: Path) -> list[str]:
     from ..dataset.reader import SequenceReader, is_sequence
 
-    traj, why_t = _read_json(seq / "metadata" / "trajectory.json")
-    sim, why_s = _read_json(seq / "metadata" / "simulation.json")
+    traj, why_t = _read_json(SequencePaths(seq).trajectory)
+    sim, why_s = _read_json(SequencePaths(seq).simulation)
     has = lambda doc: isinstance(doc, dict) and bool(doc.get("frames"))  # noqa: E731
     planned = f"{len(traj['frames'])}" if has(traj) else f"- ({why_t or 'no frames'})"
     if isinstance(traj, dict) and isinstance(traj.get("summary"), dict) and "length_m" in traj["summary"]:
@@ -393,7 +394,7 @@ def _thumb_column(mod: str, frames: list[dict], px: int) -> tuple[str, list[str]
             out.append(_img(png_uri(t), w_alt(f), t.shape[1], t.shape[0]))
         return out
 
-    if mod in ("rgb", "rgb_noisy"):
+    if mod in RGB_SOURCES:
         head = "RGB (8-bit sRGB)" if mod == "rgb" else "RGB with sensor noise"
         return _esc(head), cells([f[mod] for f in frames])
     if mod == "depth":
@@ -490,8 +491,8 @@ def section_realism(opts: ReportOptions, patients: list[Path], n: int = 6) -> st
     ours: list[Path] = []
     for p in patients:
         for sq in find_sequence_dirs(p):
-            for sub in ("rgb_noisy", "rgb"):
-                fr = sorted((sq / sub).glob("frame_*.png"))
+            for sub in (RGB_NOISY, "rgb"):
+                fr = sorted(SequencePaths(sq).folder(sub).glob("frame_*.png"))
                 if fr:
                     ours += fr
                     break
@@ -600,14 +601,12 @@ def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_
 
 def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[str]]:
     """The 3-D scene of one sequence and the caption lines saying what is drawn (and what is not)."""
-    from ..dataset.reader import RENDER_JSON
-
-    meta = seq / "metadata"
+    sp = SequencePaths(seq)
     sc = Scene3D()
     notes = []
     if mesh is not None:
         sc.mesh_vertices, sc.mesh_faces = mesh.vertices, mesh.faces
-    traj, why = _read_json(meta / "trajectory.json")
+    traj, why = _read_json(sp.trajectory)
     try:
         if traj is not None:
             sc.planned = np.array([f["pose"] for f in traj["frames"]], dtype=np.float64)[:, :3, 3]
@@ -615,7 +614,7 @@ def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[st
         traj, why = None, "trajectory.json has no 4x4 frame poses"
     if sc.planned is None:
         notes.append(f"planned trajectory not drawn: {why}")
-    sim, why_s = _read_json(meta / "simulation.json")
+    sim, why_s = _read_json(sp.simulation)
     try:
         if sim is not None:
             sc.simulated = np.array([f["tip_pose"] for f in sim["frames"]], dtype=np.float64)[:, :3, 3]
@@ -623,14 +622,14 @@ def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[st
         sim, why_s = None, "simulation.json has no tip poses"
     if sc.simulated is None:
         notes.append(f"simulated tip path not drawn: {why_s}")
-    rend, _ = _read_json(seq / RENDER_JSON)
+    rend, _ = _read_json(sp.render_json)
     if isinstance(rend, dict) and rend.get("frames"):
         try:
             sc.rendered = np.array([f["pose"] for f in rend["frames"]], dtype=np.float64)[:, :3, 3]
         except (KeyError, TypeError, ValueError, IndexError):
             notes.append("rendered cameras not drawn: render.json frames lack 4x4 poses")
     if scope_frames and traj is not None and sim is not None:
-        robot, why_r = _read_json(meta / "robot_config.json")
+        robot, why_r = _read_json(sp.robot_config)
         if robot is None:
             notes.append(f"scope not drawn: {why_r}")
         else:

@@ -25,6 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 from omegaconf import DictConfig
 
+from ..catalog import FOLDERS, RGB_NOISY, split_key
 from ..config.compose import section
 from ..config.params import params_from_dict
 from ..conventions import metadata_block
@@ -35,12 +36,11 @@ from ..noise.calibrate import CalibrationParams
 from ..noise.profile import NoiseProfile
 from ..noise.synthesize import add_noise, filter_table
 from .common import StageTimer, file_sha256, metadata, patient_paths, write_metrics
-from .trajectory import split_key
 
 #: project root (profile paths in the config are relative to it when not found from the working directory)
 PROJECT_ROOT = Path(__file__).resolve().parents[3]
-IN_FOLDER = "rgb"
-OUT_FOLDER = "rgb_noisy"
+IN_FOLDER = FOLDERS["rgb"]
+OUT_FOLDER = FOLDERS[RGB_NOISY]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,16 +101,16 @@ def frame_index(path: Path) -> int:
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
-    seq = patient_paths(cfg, patient).sequence(sequence)
-    return [seq / OUT_FOLDER, seq / "metadata" / "noise.json"]
+    seq = patient_paths(cfg, patient).seq(sequence)
+    return [seq.rgb_noisy, seq.noise_json]
 
 
 def run(cfg: DictConfig, key: str) -> dict:
     patient, sequence = split_key(key)
     p = NoiseParams.from_dict(section(cfg, "noise"))
     paths = patient_paths(cfg, patient)
-    seq = paths.sequence(sequence)
-    src_dir, out_dir = seq / IN_FOLDER, seq / OUT_FOLDER
+    seq = paths.seq(sequence)
+    src_dir, out_dir = seq.folder("rgb"), seq.rgb_noisy
     frames = sorted(src_dir.glob("frame_*.png")) if src_dir.is_dir() else []
     if not frames:
         raise InputError(f"{src_dir}: no rendered frames (frame_NNNN.png); run the render stage with rgb")
@@ -141,7 +141,7 @@ def run(cfg: DictConfig, key: str) -> dict:
             clipped.append(float(np.mean((noisy == 0) | (noisy == 255))))
             records.append({"file": f.name, "index": idx, "seed_entropy": [int(v) for v in ss.entropy],
                             "added_std_levels": round(added_std[-1], 6)})
-    write_json(seq / "metadata" / "noise.json", {
+    write_json(seq.noise_json, {
         "input": f"{IN_FOLDER}/frame_NNNN.png (clean renders, kept)",
         "output": f"{OUT_FOLDER}/frame_NNNN.png = clip(round(rgb + beta * g(luma) * n), 0, 255), uint8 sRGB",
         "beta": p.beta, "seed": p.seed,

@@ -61,11 +61,7 @@ from ..render.camera import CameraIntrinsics
 from ..render.scene import Film, Scene, TipLight, TissueMaterial
 from ..render.texture import MucosaTexture, airway_coordinates
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
-from .trajectory import split_key
-
-#: modality -> output folder (the ROOM layout)
-FOLDERS = {"rgb": "rgb", "depth": "depth", "relative_depth": "relative_depth", "normals": "surface_normals",
-           "flow": "optical_flow", "point_cloud": "point_clouds", "segmentation": "segmentation"}
+from ..catalog import RENDER_FOLDERS as FOLDERS, SequencePaths, split_key  # FOLDERS: modality -> folder
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,8 +198,8 @@ def texture_params(d: Mapping[str, Any] | None) -> MucosaTexture:
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
-    seq = patient_paths(cfg, patient).sequence(sequence)
-    return [seq / f for f in FOLDERS.values()] + [seq / "calibration", seq / "metadata" / "render.json"]
+    seq = patient_paths(cfg, patient).seq(sequence)
+    return seq.render_folders() + [seq.calibration, seq.render_json]
 
 
 def face_labels(mesh: Mesh, graph: CentrelineGraph) -> tuple[np.ndarray, dict]:
@@ -221,9 +217,9 @@ def face_labels(mesh: Mesh, graph: CentrelineGraph) -> tuple[np.ndarray, dict]:
 def load_poses(meta_dir, which: str) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps, camera-to-world poses) of the planned or the simulated sequence."""
     if which == "simulated":
-        doc = read_json(meta_dir / "simulation.json")
+        doc = read_json(SequencePaths(Path(meta_dir).parent).simulation)
         return (np.array([f["timestamp"] for f in doc["frames"]]), np.array([f["tip_pose"] for f in doc["frames"]]))
-    doc = read_json(meta_dir / "trajectory.json")
+    doc = read_json(SequencePaths(Path(meta_dir).parent).trajectory)
     return np.array([f["timestamp"] for f in doc["frames"]]), np.array([f["pose"] for f in doc["frames"]])
 
 
@@ -451,6 +447,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     parallel = ex_params.backend != "serial" and ex_params.workers > 1
     paths = patient_paths(cfg, patient)
     seq = paths.sequence(sequence)
+    sp = paths.seq(sequence)
     with StageTimer() as timer:
         ts, poses = load_poses(paths.sequence_metadata(sequence), p.poses)
         src = np.arange(0, len(ts), p.frame_stride)
@@ -459,7 +456,7 @@ def run(cfg: DictConfig, key: str) -> dict:
         if len(src) == 0:
             raise InputError(f"{sequence}: no poses to render")
         mods = set(p.modalities)
-        ensure_writable(*(seq / f for f in FOLDERS.values()), seq / "calibration", seq / "metadata")
+        ensure_writable(*sp.render_folders(), sp.calibration, sp.metadata)
         remove_stale_temp_files(seq)
         mesh = read_obj(paths.mesh)
         graph = CentrelineGraph.from_dict(read_json(paths.centreline_graph))
@@ -486,15 +483,15 @@ def run(cfg: DictConfig, key: str) -> dict:
         n_hit = [r["hit"] for r in results]
         n_valid_flow = [r["flow_valid"] for r in results if r["flow_valid"] is not None]
     if "segmentation" in mods:
-        write_json(seq / "segmentation" / "legend.json",
+        write_json(sp.legend,
                    {"encoding": "uint16 PNG: label = airway branch id + 1, 0 = no hit",
                     "branch_ids": "centreline_graph.json ids", "labels": legend})
     # without point_cloud in render.modalities no PLY is written: the reader builds clouds from depth/ then
     stored = storage if "point_cloud" in mods else dataclasses.replace(storage, point_clouds="on_demand")
     precision = stored.precision()
-    write_json(seq / "point_clouds" / POINT_CLOUD_JSON, {**precision["point_clouds"], "requested": "point_cloud" in mods})
-    write_json(seq / "calibration" / "camera_params.json", {**cam.to_dict(), "storage": precision})
-    write_json(seq / "metadata" / "render.json", {
+    write_json(sp.folder("point_cloud") / POINT_CLOUD_JSON, {**precision["point_clouds"], "requested": "point_cloud" in mods})
+    write_json(sp.camera, {**cam.to_dict(), "storage": precision})
+    write_json(sp.render_json, {
         "renderer": renderer_meta, "storage": {"params": dataclasses.asdict(storage), "precision": precision},
         "poses": p.poses, "modalities": sorted(mods), "frames": frames,
         "flow": "forward t -> t+1 in pixels (u right, v down); the last frame has zero flow and no valid pixel",
