@@ -28,7 +28,7 @@ from ..config.compose import section
 from ..errors import InputError
 from ..io.atomic import write_json, write_text
 from ..io.mesh import Mesh, read_obj
-from ..planning.trajectory import tum_text
+from ..io.tum import tum_text
 from ..robot.kinematics import ScopeGeometry
 from ..robot.pybullet_sim import SimParams, check_inputs, robot_config, simulate
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
