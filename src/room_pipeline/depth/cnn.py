@@ -71,7 +71,7 @@ from ..io.atomic import write_bytes
 from ..io.images import read_png
 from ..io.mesh import Mesh
 from ..render.camera import CameraIntrinsics, look_at
-from .estimators import Estimator, Frame, Sample
+from .base import Estimator, Frame, Sample
 from .metrics import valid_gt
 
 CHECKPOINT_FORMAT = "room-depth-cnn/1"
