@@ -76,8 +76,8 @@ class DepthParams:
     methods: tuple = ("physics", "cnn", "cnn_pretrained")
     also_median: bool = True
     valid_range_mm: tuple = (1.0, 200.0)
-    input: str = "rgb"
-    frame_stride: int = 1
+    input: str = "rgb_noisy"
+    frame_stride: int = 3
     max_frames: int | None = None
     physics: PhysicsParams = PhysicsParams()
     cnn: CNNParams | None = None

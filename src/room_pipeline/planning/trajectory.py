@@ -107,15 +107,15 @@ class TrajectoryParams:
     Lengths in millimetres (``_mm``), speeds mm/s, curvature 1/m, times s, angles deg.
     """
 
-    targets: str = "leaves"              # leaves | random_leaves | points
-    max_generation: int | None = 4       # leaves: terminal branches of the tree cut at this generation (null: all leaves)
-    n: int = 10                          # random_leaves: how many
+    targets: str = "random_leaves"       # leaves | random_leaves | points
+    max_generation: int | None = 6       # leaves: terminal branches of the tree cut at this generation (null: all leaves)
+    n: int = 3                           # random_leaves: how many
     seed: int = 0                        # random_leaves: RNG seed
     points: Any = None                   # points: [[x, y, z], ...] metres, or a Med-MPD target.txt path (mm), or a list of paths
     target_tolerance_mm: float = 1.0     # a target point may lie this far outside a centreline point's lumen
-    unreachable: str = "error"           # error | nearest
-    start_offset_mm: float = 0.0         # start this far along the root branch from its first point
-    min_lumen_radius_mm: float = 0.0     # the route ends where the lumen radius falls below this (0 = off)
+    unreachable: str = "nearest"         # error | nearest
+    start_offset_mm: float = 10.0        # start this far along the root branch from its first point
+    min_lumen_radius_mm: float = 3.5     # the route ends where the lumen radius falls below this (0 = off)
     kappa_max: float | None = None       # 1/m; null: the scope geometry's q1_max / (2 gamma l) = 45.71
     curvature_safety: float = 0.95       # the smoother aims at this fraction of kappa_max
     clearance_fraction: float = 0.25     # margin = max(fraction * r, clearance_min_mm) ...

@@ -48,9 +48,9 @@ CURVES = ("position_error_mm", "orientation_error_deg", "step_rotation_error_deg
 class PoseEvalParams:
     """Keys of ``evaluate.pose`` in ``conf/evaluate/default.yaml`` (see its comments for units)."""
 
-    methods: tuple = ("colmap", "sift_vo", "orb_vo")
+    methods: tuple = ("sift_vo", "orb_vo")
     images: str = "noisy"
-    frame_stride: int = 1
+    frame_stride: int = 3
     max_frames: int | None = None
     downscale: float = 2.0
     seed: int = 0

@@ -66,7 +66,8 @@ from ..catalog import RENDER_FOLDERS as FOLDERS, SequencePaths, split_key  # FOL
 
 @dataclasses.dataclass(frozen=True)
 class RenderParams:
-    """Keys of ``conf/render/default.yaml`` (see its comments for units)."""
+    """Keys of ``conf/render/default.yaml`` (see its comments for units); defaults equal to it
+    (``tests/test_conf_defaults.py``)."""
 
     backend: str = "raycast"
     poses: str = "simulated"
@@ -79,20 +80,20 @@ class RenderParams:
     near_mm: float = 0.1
     far_mm: float = 500.0
     distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)
-    base_color: tuple = (0.80, 0.38, 0.32)
+    base_color: tuple = (0.95, 0.392, 0.454)
     roughness: float = 0.35
     specular: float = 0.5
     interreflection: float = 0.0
     interreflection_window_mm: float = 6.0
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
-    light_offset_mm: tuple = (0.0, 0.0, 0.0)
-    light_spot_exponent: float = 0.0
+    light_offset_mm: tuple = (0.0, -1.1, 0.0)
+    light_spot_exponent: float = 2.767
     light_falloff: str = "inverse_square"
     light_falloff_length_mm: float = 20.0
     exposure_ev: float | None = None
     auto_exposure: str = "per_frame"
-    auto_exposure_target: float = 0.8
+    auto_exposure_target: float = 0.5
     auto_exposure_percentile: float = 95.0
     auto_exposure_smoothing_s: float = 0.3
     auto_exposure_min_ev: float = -12.0
@@ -100,12 +101,12 @@ class RenderParams:
     auto_exposure_highlight_percentile: float = 99.0
     auto_exposure_highlight_max: float = 0.9
     vignetting: float = 0.0
-    veiling_glare: float = 0.0
+    veiling_glare: float = 0.12
     response: str = "srgb"
     gamma: float = 2.2
     shading_stride: int = 2
     texture: dict = dataclasses.field(default_factory=dict)
-    cycles_samples: int = 16
+    cycles_samples: int = 4
     cycles_denoise: bool = True
     storage: dict = dataclasses.field(default_factory=dict)
 
