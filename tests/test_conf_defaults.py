@@ -33,7 +33,7 @@ TABLE = [
     ("room_pipeline.render.texture", "MucosaTexture", "render/default.yaml", "texture"),
     ("room_pipeline.io.storage", "StorageParams", "render/default.yaml", "storage"),
     ("room_pipeline.execution.executor", "ExecutionParams", "execution/default.yaml", ""),
-    ("room_pipeline.stages.noise", "NoiseParams", "noise/default.yaml", ""),
+    ("room_pipeline.noise.params", "NoiseParams", "noise/default.yaml", ""),
     ("room_pipeline.noise.calibrate", "CalibrationParams", "noise/default.yaml", "calibration"),
     ("room_pipeline.stages.evaluate_pose", "PoseEvalParams", "evaluate/default.yaml", "pose"),
     ("room_pipeline.evaluate.pose_methods", "ColmapParams", "evaluate/default.yaml", "pose.colmap"),
