@@ -45,7 +45,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..catalog import DEPTH_MODEL, RGB_SOURCES, SequencePaths
+from ..catalog import DEPTH_MODEL, RGB_NOISY, RGB_SOURCES, SequencePaths
 from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import BackendUnavailable, ConfigError, InputError
@@ -76,7 +76,7 @@ class DepthParams:
     methods: tuple = ("physics", "cnn", "cnn_pretrained")
     also_median: bool = True
     valid_range_mm: tuple = (1.0, 200.0)
-    input: str = "rgb_noisy"
+    input: str = RGB_NOISY
     frame_stride: int = 3
     max_frames: int | None = None
     physics: PhysicsParams = PhysicsParams()

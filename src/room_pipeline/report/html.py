@@ -49,9 +49,11 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from ..catalog import METADATA, RGB_NOISY, RGB_SOURCES, SequencePaths
+from ..catalog import (METADATA, RENDER_JSON, RGB_NOISY, RGB_SOURCES, SIMULATION_JSON, TRAJECTORY_JSON,
+                       SequencePaths)
 from ..errors import ConfigError, InputError, RoomError
 from ..io.metrics import is_timing_file, merge_timings, timing_path
+from ..io.records import POSE_KEY, pose_track_from_doc
 
 #: (section id, heading), in page order
 SECTIONS: tuple[tuple[str, str], ...] = (
@@ -560,8 +562,6 @@ def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_
     frame the distance (m) between the reconstructed tip and the simulated ``tip_pose``).
     Raises InputError when the inputs lack what the reconstruction needs.
     """
-    import types
-
     from ..robot.kinematics import ScopeGeometry, fk
     from ..robot.pybullet_sim import Route
 
@@ -569,9 +569,9 @@ def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_
         raise InputError(f"insertion model {robot.get('insertion_model')!r}: the shaft shape is not recorded "
                          "(only the kinematic model's shaft follows the planned route)")
     try:
-        tf = trajectory["frames"]
-        poses = np.array([f["pose"] for f in tf], dtype=np.float64)
-        arclength = np.array([f["arclength"] for f in tf], dtype=np.float64)
+        planned = pose_track_from_doc(trajectory, POSE_KEY[TRAJECTORY_JSON], TRAJECTORY_JSON)
+        if planned.arclength is None:
+            raise KeyError("arclength")
         k = robot.get("kinematics") or {}
         geometry = ScopeGeometry(l=float(k.get("bending_length", ScopeGeometry.l)),
                                  gamma=float(k.get("gamma", ScopeGeometry.gamma)),
@@ -580,10 +580,10 @@ def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_
         picks = pick_frames(len(sf), n_frames + 1)[1:] if n_frames > 0 and len(sf) > 1 else []
         picks = picks[-n_frames:] if n_frames else []
         qs = [np.asarray(sf[i]["q_act"], dtype=np.float64) for i in picks]
-        tips = np.array([np.asarray(sf[i]["tip_pose"], dtype=np.float64)[:3, 3] for i in picks]).reshape(-1, 3)
-    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        tips = pose_track_from_doc(simulation, POSE_KEY[SIMULATION_JSON], SIMULATION_JSON).positions[picks]
+    except (KeyError, TypeError, ValueError, IndexError, InputError) as exc:
         raise InputError(f"trajectory/simulation/robot_config lack what the scope drawing needs ({exc})") from None
-    route = Route.from_trajectory(types.SimpleNamespace(poses=poses, arclength=arclength))
+    route = Route.from_trajectory(planned)
     lines, mismatch = [], []
     for q, tip in zip(qs, tips):
         s0 = float(route.s[0])
@@ -609,24 +609,24 @@ def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[st
     traj, why = _read_json(sp.trajectory)
     try:
         if traj is not None:
-            sc.planned = np.array([f["pose"] for f in traj["frames"]], dtype=np.float64)[:, :3, 3]
-    except (KeyError, TypeError, ValueError, IndexError):
+            sc.planned = pose_track_from_doc(traj, POSE_KEY[TRAJECTORY_JSON], sp.trajectory).positions
+    except (KeyError, TypeError, ValueError, IndexError, InputError):
         traj, why = None, "trajectory.json has no 4x4 frame poses"
     if sc.planned is None:
         notes.append(f"planned trajectory not drawn: {why}")
     sim, why_s = _read_json(sp.simulation)
     try:
         if sim is not None:
-            sc.simulated = np.array([f["tip_pose"] for f in sim["frames"]], dtype=np.float64)[:, :3, 3]
-    except (KeyError, TypeError, ValueError, IndexError):
+            sc.simulated = pose_track_from_doc(sim, POSE_KEY[SIMULATION_JSON], sp.simulation).positions
+    except (KeyError, TypeError, ValueError, IndexError, InputError):
         sim, why_s = None, "simulation.json has no tip poses"
     if sc.simulated is None:
         notes.append(f"simulated tip path not drawn: {why_s}")
     rend, _ = _read_json(sp.render_json)
     if isinstance(rend, dict) and rend.get("frames"):
         try:
-            sc.rendered = np.array([f["pose"] for f in rend["frames"]], dtype=np.float64)[:, :3, 3]
-        except (KeyError, TypeError, ValueError, IndexError):
+            sc.rendered = pose_track_from_doc(rend, POSE_KEY[RENDER_JSON], sp.render_json).positions
+        except (KeyError, TypeError, ValueError, IndexError, InputError):
             notes.append("rendered cameras not drawn: render.json frames lack 4x4 poses")
     if scope_frames and traj is not None and sim is not None:
         robot, why_r = _read_json(sp.robot_config)

@@ -57,6 +57,7 @@ from ..io.atomic import write_json
 from ..io.images import write_png8, write_png16
 from ..io.storage import POINT_CLOUD_JSON, FrameWriter, StorageParams, stride_mask
 from ..io.mesh import Mesh, read_obj
+from ..io.records import pose_track
 from ..render.camera import CameraIntrinsics
 from ..render.scene import Film, Scene, TipLight, TissueMaterial
 from ..render.texture import MucosaTexture, airway_coordinates
@@ -217,11 +218,10 @@ def face_labels(mesh: Mesh, graph: CentrelineGraph) -> tuple[np.ndarray, dict]:
 
 def load_poses(meta_dir, which: str) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps, camera-to-world poses) of the planned or the simulated sequence."""
-    if which == "simulated":
-        doc = read_json(SequencePaths(Path(meta_dir).parent).simulation)
-        return (np.array([f["timestamp"] for f in doc["frames"]]), np.array([f["tip_pose"] for f in doc["frames"]]))
-    doc = read_json(SequencePaths(Path(meta_dir).parent).trajectory)
-    return np.array([f["timestamp"] for f in doc["frames"]]), np.array([f["pose"] for f in doc["frames"]])
+    sp = SequencePaths(Path(meta_dir).parent)
+    path = sp.simulation if which == "simulated" else sp.trajectory
+    track = pose_track(path, read_json(path))
+    return track.timestamps, track.poses
 
 
 def execution_params(cfg: DictConfig) -> ExecutionParams:

@@ -18,8 +18,6 @@ mesh; the count is recorded.
 """
 from __future__ import annotations
 
-import types
-
 import numpy as np
 from omegaconf import DictConfig
 
@@ -28,6 +26,7 @@ from ..config.compose import section
 from ..errors import InputError
 from ..io.atomic import write_json, write_text
 from ..io.mesh import Mesh, read_obj
+from ..io.records import pose_track
 from ..io.tum import tum_text
 from ..robot.kinematics import ScopeGeometry
 from ..robot.pybullet_sim import SimParams, check_inputs, robot_config, simulate
@@ -58,19 +57,15 @@ def _read_inputs(trajectory_json, graph_json, key: str):
     malformed file is one :class:`InputError` line naming it."""
     path = trajectory_json
     try:
-        frames = read_json(path)["frames"]
-        traj = types.SimpleNamespace(
-            timestamps=np.array([f["timestamp"] for f in frames], float),
-            poses=np.array([f["pose"] for f in frames], float),
-            arclength=np.array([f["arclength"] for f in frames], float))
-        if traj.poses.ndim != 3 or traj.poses.shape[1:] != (4, 4):
-            raise ValueError(f"poses of shape {traj.poses.shape}, expected (N, 4, 4)")
+        traj = pose_track(path, read_json(path))
+        if traj.arclength is None:
+            raise ValueError("frames without 'arclength'")
         path = graph_json
         graph = read_json(path)
         root_radius = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
     except StopIteration:
         raise InputError(f"simulate {key}: {path} has no root branch (parent -1)") from None
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, IndexError, InputError) as exc:
         raise InputError(f"simulate {key}: cannot read {path} ({type(exc).__name__}: "
                          f"{' '.join(str(exc).split())})") from None
     if not (np.isfinite(root_radius) and root_radius > 0):
