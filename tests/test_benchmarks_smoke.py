@@ -50,7 +50,7 @@ SMOKE = {
     "anatomy_speed.py": (["--sizes", "128"], ()),
     "noise.py": (["--speed-runs", "2", "--synth-frames", "2"], ("shared",)),
     "raycast_renderer.py": (["--frames", "2", "--write-frames", "1", "--repeats", "1"], ()),
-    "pose_eval.py": (["--quick", "--data", str(RUN)], ("run",)),
+    "pose_eval.py": (["--quick", "--methods", "orb_vo", "--data", str(RUN)], ("run",)),
     "depth_eval.py": (["--quick", "--data", str(RUN)], ("run",)),
     "executor_throughput.py": (["--quick", "--repeats", "1", "--max-wait", "0"], ("run",)),
     "realism_speed.py": (["--inputs", str(RUN), "--frames", "1"], ("run",)),
