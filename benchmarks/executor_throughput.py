@@ -3,7 +3,7 @@
 
 Workload (render-bound, as the render stage): the fast Open3D renderer on the
 phantom lumen mesh ``data/output/patient_000/anatomy/lung_model.obj`` with the
-20 camera poses of ``sequence_001/metadata/render.json`` resampled along the
+camera poses of its first rendered sequence's ``metadata/render.json`` (the catalogue's names) resampled along the
 path to N frames (positions linear, rotations slerp), every default modality
 (rgb, depth, relative_depth, normals, flow, segmentation) at 600x600, every
 file written (PNG / EXR / .flo, atomically) into a temporary folder.  Each
@@ -52,8 +52,19 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 DATA = ROOT / "data" / "output" / "patient_000"
 MODALITIES = ("rgb", "depth", "relative_depth", "normals", "flow", "segmentation")
-FOLDERS = {"rgb": "rgb", "depth": "depth", "relative_depth": "relative_depth", "normals": "surface_normals",
-           "flow": "optical_flow", "segmentation": "segmentation"}
+
+from room_pipeline.catalog import FOLDERS as _ALL_FOLDERS, SequencePaths  # noqa: E402
+
+FOLDERS = {m: _ALL_FOLDERS[m] for m in MODALITIES}
+QUICK = "--quick" in sys.argv         # smoke mode: results go to executor_throughput_quick.* (the published ones stay)
+
+
+def first_sequence() -> SequencePaths:
+    """The first rendered sequence of the phantom patient (``<sequence>/metadata/render.json``)."""
+    for d in sorted(DATA.iterdir()) if DATA.is_dir() else []:
+        if SequencePaths(d).is_rendered():
+            return SequencePaths(d)
+    raise SystemExit(f"room: error: {DATA}: no rendered sequence (run the default pipeline first)")
 
 
 # --------------------------------------------------------------------------- workload
@@ -84,7 +95,7 @@ def build_scene(n: int, exposure_ev: float | None):
     mesh = read_obj(DATA / "anatomy" / "lung_model.obj")
     graph = CentrelineGraph.from_dict(json.loads((DATA / "anatomy" / "centreline_graph.json").read_text()))
     labels, _ = face_labels(mesh, graph)
-    doc = json.loads((DATA / "sequence_001" / "metadata" / "render.json").read_text())
+    doc = json.loads(first_sequence().render_json.read_text())
     poses = resample_poses(np.array([f["pose"] for f in doc["frames"]]), n)
     cam = CameraIntrinsics.from_fov(600, 600, p.fov_deg, p.near_mm * 1e-3, p.far_mm * 1e-3)
     return Scene(mesh, cam, poses, np.arange(n) / 10.0,
@@ -379,7 +390,7 @@ def main() -> None:
            "started": started, "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
                                            "note": "shared with other jobs"},
            "workload": {"mesh": str((DATA / "anatomy" / "lung_model.obj").relative_to(ROOT)),
-                        "poses": "sequence_001/metadata/render.json resampled (linear + slerp)",
+                        "poses": f"{first_sequence().root.name}/metadata/render.json resampled (linear + slerp)",
                         "size": [600, 600], "modalities": list(MODALITIES)},
            "selection": f"best of {args.repeats} alternating runs per row; each run started once other users kept "
                         f"<= {args.max_busy} cores busy (3 s sample) or after {args.max_wait:.0f} s of waiting",
@@ -408,9 +419,10 @@ def write_results(doc: dict) -> None:
     doc["speedup_2_over_1"] = speedups
     doc["speedup_bound_from_cpu_time"] = cpu_bound
     doc["speedup_2_workers_over_serial"] = vs_serial
-    write_json(RESULTS / "executor_throughput.json", doc)
-    write_text(RESULTS / "executor_throughput.md", to_markdown(doc))
-    for name in ("executor_throughput.json", "executor_throughput.md"):
+    stem = "executor_throughput_quick" if QUICK else "executor_throughput"
+    write_json(RESULTS / f"{stem}.json", doc)
+    write_text(RESULTS / f"{stem}.md", to_markdown(doc))
+    for name in (f"{stem}.json", f"{stem}.md"):
         os.chmod(RESULTS / name, 0o644)          # the atomic writer's temporary files are 0600
     print(json.dumps({"speedup_2_over_1": speedups, "speedup_bound_from_cpu_time": cpu_bound,
                       "speedup_2_workers_over_serial": vs_serial}))

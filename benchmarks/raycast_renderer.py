@@ -65,7 +65,8 @@ def make_inputs(args) -> tuple:
     ph = make_phantom(pp, seed=0)
     mesh = extract_surface(ph.sdf, MeshParams()).mesh
     graph = from_airway_tree(ph.tree, 1e-3)
-    tp = TrajectoryParams(targets="leaves", max_generation=3, unreachable="nearest")
+    tp = TrajectoryParams(targets="leaves", max_generation=3, unreachable="nearest", start_offset_mm=0.0,
+                          min_lumen_radius_mm=0.0)
     target = select_targets(graph, tp)[0]
     traj = plan_path(graph, target, as_sdf_fn(ph.tree), tp)
     info = {"phantom": {"seed": 0, "spacing_mm": 1.0, "max_generation": 6}, "mesh_params": "default",

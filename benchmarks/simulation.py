@@ -72,7 +72,8 @@ def lumen_mesh(tree, lo, hi, h=1e-3):
 def scene(target: int, start_offset_mm: float):
     tree = grow_tree(PhantomParams(max_generation=3, lung_points=4000), np.random.default_rng(0))
     graph = from_airway_tree(tree, 1e-3)
-    tr = plan_path(graph, target, tree, TrajectoryParams(start_offset_mm=start_offset_mm))
+    tr = plan_path(graph, target, tree, TrajectoryParams(start_offset_mm=start_offset_mm, unreachable="error",
+                                                            min_lumen_radius_mm=0.0))
     P = tr.poses[:, :3, 3]
     P = np.vstack([P, P[0] - 0.065 * tr.poses[0, :3, 2]])
     return tree, tr, lumen_mesh(tree, P.min(0) - 0.012, P.max(0) + 0.012)

@@ -59,7 +59,8 @@ def main() -> None:
     pp = PhantomParams()
     tree = grow_tree(pp, np.random.default_rng(0))
     graph = from_airway_tree(tree, 1e-3)
-    params = TrajectoryParams(targets="leaves", max_generation=args.max_generation, unreachable="nearest")
+    params = TrajectoryParams(targets="leaves", max_generation=args.max_generation, unreachable="nearest",
+                              start_offset_mm=0.0, min_lumen_radius_mm=0.0)
     rows = run("exact", graph, tree, params)
     if args.volume:
         from room_pipeline.anatomy.phantom import make_phantom

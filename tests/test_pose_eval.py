@@ -419,7 +419,8 @@ def make_cfg(tmp_path, methods=("colmap", "orb_vo"), **pose_kw):
     return OmegaConf.create({
         "output_dir": str(tmp_path / "out"), "patients": {"p0": {"kind": "ct", "input": "x"}},
         "sequences": ["sequence_000", "sequence_001"],
-        "evaluate": {"pose": {"methods": list(methods), "images": "noisy", "downscale": 1.0, **pose_kw},
+        "evaluate": {"pose": {"methods": list(methods), "images": "noisy", "downscale": 1.0,
+                                  **{"frame_stride": 1, **pose_kw}},
                      "tables": {"output_dir": str(tmp_path / "reports"), "digits": 2}}})
 
 

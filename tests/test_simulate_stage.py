@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from room_pipeline.io.mesh import Mesh
-from room_pipeline.planning.trajectory import tum_text as tum
+from room_pipeline.io.tum import tum_text as tum
 from room_pipeline.stages.simulate import open_entrance
 
 

@@ -68,7 +68,7 @@ def phantom():
     """Small phantom airway (generation 3), a path from 90 mm down the trachea into branch 3, its mesh."""
     tree = grow_tree(PhantomParams(max_generation=3, lung_points=4000), np.random.default_rng(0))
     graph = from_airway_tree(tree, 1e-3)
-    tr = plan_path(graph, 3, tree, TrajectoryParams(start_offset_mm=90.0))
+    tr = plan_path(graph, 3, tree, TrajectoryParams(start_offset_mm=90.0, unreachable="error", min_lumen_radius_mm=0.0))
     P = tr.poses[:, :3, 3]
     P = np.vstack([P, P[0] - 0.065 * tr.poses[0, :3, 2]])   # room for the bending segment behind the start
     mesh = lumen_mesh(tree, P.min(0) - 0.012, P.max(0) + 0.012)

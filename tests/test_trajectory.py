@@ -16,7 +16,8 @@ from room_pipeline.anatomy.phantom import PhantomParams, grow_tree
 from room_pipeline.anatomy.tree import AirwayTree, Branch
 from room_pipeline.errors import ConfigError, InputError
 from room_pipeline.io.volume import Volume
-from room_pipeline.planning.trajectory import (TrajectoryParams, map_target_point, parse_tum, plan_path,
+from room_pipeline.planning.trajectory import TrajectoryParams as _TrajectoryParams
+from room_pipeline.planning.trajectory import (map_target_point, parse_tum, plan_path,
                                                plan_trajectories, read_target_file, select_targets,
                                                timestamps_dict, volume_sdf_fn)
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY
@@ -24,6 +25,18 @@ from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY
 from .conftest import REPO, shared_path
 
 MM = 1e-3
+#: the library defaults these tests were written against; the code defaults now equal
+#: conf/trajectory/default.yaml (tests/test_conf_defaults.py), which starts 10 mm in, stops at 3.5 mm lumens
+#: and falls back to the nearest reachable point
+LEGACY = dict(targets="leaves", max_generation=4, n=10, unreachable="error", start_offset_mm=0.0,
+              min_lumen_radius_mm=0.0)
+
+
+def TrajectoryParams(**kw) -> _TrajectoryParams:  # noqa: N802 (stands in for the class)
+    return _TrajectoryParams(**{**LEGACY, **kw})
+
+
+TrajectoryParams.from_dict = _TrajectoryParams.from_dict
 KMAX = DEFAULT_GEOMETRY.kappa_max
 
 
@@ -321,7 +334,7 @@ def test_random_leaves_seeded(small_phantom):
 
 def test_params_yaml_and_validation():
     d = yaml.safe_load((REPO / "conf" / "trajectory" / "default.yaml").read_text())
-    assert set(d) == {f.name for f in dataclasses.fields(TrajectoryParams)}
+    assert set(d) == {f.name for f in dataclasses.fields(_TrajectoryParams)}
     TrajectoryParams.from_dict(d)  # the pipeline's choices are valid (they may differ from library defaults)
     with pytest.raises(ConfigError, match="'speed_mm'"):
         TrajectoryParams.from_dict({"speed_mm": 3})

@@ -1,4 +1,5 @@
-"""The output layout (the ROOM paper's), in one place.
+"""The output layout (the ROOM paper's): patient-level files; names inside a sequence live in
+:mod:`room_pipeline.catalog`.
 
 ``<output_dir>/<patient>/``
     ``input/ct.nii.gz``                 phantom CT (phantom patients only)
@@ -19,6 +20,8 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+
+from .catalog import DEPTH_FINETUNE_JSON, DEPTH_MODEL, EVALUATION, EvaluationPaths, SequencePaths
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,18 +119,36 @@ class PatientPaths:
     def sequence(self, sequence: str) -> Path:
         return self.root / sequence
 
+    def seq(self, sequence: str) -> SequencePaths:
+        """Every path inside the sequence folder (:mod:`room_pipeline.catalog`)."""
+        return SequencePaths(self.sequence(sequence))
+
     def sequence_metadata(self, sequence: str) -> Path:
-        return self.sequence(sequence) / "metadata"
+        return self.seq(sequence).metadata
 
     # evaluation (one folder per dataset: the tables stage depends on it as a whole)
     @property
     def evaluation_root(self) -> Path:
         """``<output_dir>/evaluation/<patient>/``."""
-        return Path(self.output_dir) / "evaluation" / self.patient
+        return Path(self.output_dir) / EVALUATION / self.patient
 
     def evaluation(self, sequence: str) -> Path:
         """``<output_dir>/evaluation/<patient>/<sequence>/``: pose.json, depth.json, per-frame CSVs."""
         return self.evaluation_root / sequence
+
+    def eval(self, sequence: str) -> EvaluationPaths:
+        """The named result files of :meth:`evaluation` (:mod:`room_pipeline.catalog`)."""
+        return EvaluationPaths(self.evaluation(sequence))
+
+    @property
+    def depth_finetune(self) -> Path:
+        """``<output_dir>/evaluation/<patient>/depth_finetune.json`` (train_depth, read by tables)."""
+        return self.evaluation_root / DEPTH_FINETUNE_JSON
+
+    @property
+    def depth_model(self) -> Path:
+        """``<patient>/depth_model/``: the fine-tuned depth network's checkpoints (train_depth)."""
+        return self.root / DEPTH_MODEL
 
     @property
     def metrics_dir(self) -> Path:

@@ -63,14 +63,12 @@ from ..errors import InputError
 from ..io.images import read_exr, read_flo, read_png
 from ..io.ply import read_ply
 from ..io.storage import POINT_CLOUD_JSON, stride_mask
-from ..stages.render import FOLDERS as RENDER_FOLDERS
+from .. import catalog
+from ..catalog import FOLDERS, MODALITIES, RGB_NOISY  # noqa: F401 (FOLDERS, MODALITIES: re-exported)
 
-#: modality -> folder inside the sequence (the render stage's layout plus the noise stage's frames)
-FOLDERS: dict[str, str] = {**RENDER_FOLDERS, "rgb_noisy": "rgb_noisy"}
-MODALITIES: tuple[str, ...] = ("rgb", "rgb_noisy", "depth", "relative_depth", "normals", "flow",
-                               "segmentation", "point_cloud")
-RENDER_JSON = Path("metadata") / "render.json"
-CAMERA_JSON = Path("calibration") / "camera_params.json"
+#: the two JSON files that make a folder a rendered sequence (relative to it)
+RENDER_JSON = Path(catalog.METADATA) / catalog.RENDER_JSON
+CAMERA_JSON = Path(catalog.CALIBRATION) / catalog.CAMERA_JSON
 
 
 def _read_json(path: Path) -> Any:
@@ -168,8 +166,8 @@ class SequenceReader:
         if modalities is None:
             rendered = set(self.render_meta.get("modalities") or [])
             mods = [m for m in MODALITIES if m in rendered and m != "point_cloud"]
-            if (self.path / FOLDERS["rgb_noisy"]).is_dir():
-                mods.append("rgb_noisy")
+            if (self.path / FOLDERS[RGB_NOISY]).is_dir():
+                mods.append(RGB_NOISY)
         else:
             if isinstance(modalities, str):
                 modalities = [modalities]
@@ -224,13 +222,13 @@ class SequenceReader:
     def legend(self) -> dict:
         """``segmentation/legend.json`` (label -> branch id, generation, parent); read on first use."""
         if self._legend is None:
-            self._legend = _read_json(self.path / FOLDERS["segmentation"] / "legend.json")
+            self._legend = _read_json(self.path / FOLDERS["segmentation"] / catalog.LEGEND_JSON)
         return self._legend
 
     def file(self, modality: str, i: int) -> Path:
         """Path of frame ``i``'s file of one modality (``flow``: the ``.exr`` or, when that is absent, ``.flo``)."""
         ext = {"depth": ".exr", "normals": ".exr", "flow": ".exr", "point_cloud": ".ply"}.get(modality, ".png")
-        p = self.path / FOLDERS[modality] / f"frame_{int(self._index[self._pos(i)]):04d}{ext}"
+        p = self.path / FOLDERS[modality] / catalog.frame_name(self._index[self._pos(i)], ext)
         if modality == "flow":
             # what render.json says was written; sequences from before render.storage: the .flo
             fmt = ((self.render_meta.get("storage") or {}).get("params") or {}).get("flow_format")
@@ -279,7 +277,7 @@ class SequenceReader:
                                "K": self.K.copy(), "intrinsics": dict(self.intrinsics)}
         mods = self.modalities
         valid = None
-        for m in ("rgb", "rgb_noisy"):
+        for m in catalog.RGB_SOURCES:
             if m in mods:
                 out[m] = self._rgb(m, j)
         if "depth" in mods:
@@ -313,7 +311,7 @@ class SequenceReader:
                 if fl.ndim != 3 or fl.shape[2] != 2:
                     raise InputError(f"{p}: expected a 2-channel (u, v) flow EXR, got shape {fl.shape}")
             out["flow"] = self._check_shape(np.ascontiguousarray(fl, dtype=np.float32), p, 2)
-            pv = self.path / FOLDERS["flow"] / f"valid_{int(self._index[j]):04d}.png"
+            pv = self.path / FOLDERS["flow"] / catalog.frame_name(self._index[j], ".png", prefix="valid")
             v = self._check_shape(read_png(pv), pv, None)
             out["flow_valid"] = v > 0
         if "segmentation" in mods:

@@ -43,6 +43,7 @@ from typing import Any, Callable, Iterable, Sequence, Union
 
 import numpy as np
 
+from ..catalog import RGB_NOISY, RGB_SOURCES
 from ..errors import BackendUnavailable, InputError
 from .reader import SequenceReader, find_sequences
 
@@ -55,7 +56,7 @@ except ImportError as _exc:  # pragma: no cover - exercised by a test that hides
 
 #: keys whose first dimension varies from frame to frame (kept as lists by :func:`room_collate`)
 VARIABLE_SIZE = ("point_cloud", "point_cloud_normals", "point_cloud_colors")
-_CHW = {"rgb": 3, "rgb_noisy": 3, "normals": 3, "flow": 2}
+_CHW = {"rgb": 3, RGB_NOISY: 3, "normals": 3, "flow": 2}
 _PLANES = ("depth", "relative_depth", "flow_valid", "valid")
 
 Source = Union[str, os.PathLike, SequenceReader]
@@ -65,7 +66,7 @@ def frame_to_tensors(frame: dict[str, Any], sequence: str = "") -> dict[str, Any
     """A :meth:`SequenceReader.frame` dict -> the tensor dict documented in the module docstring."""
     out: dict[str, Any] = {}
     for k, v in frame.items():
-        if k in ("rgb", "rgb_noisy"):
+        if k in RGB_SOURCES:
             out[k] = torch.from_numpy(np.ascontiguousarray(v.transpose(2, 0, 1))).to(torch.float32).div_(255.0)
         elif k in _CHW:
             out[k] = torch.from_numpy(np.ascontiguousarray(v.transpose(2, 0, 1)))

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BackendUnavailable, ConfigError
-from .estimators import Estimator, Frame
+from .base import Estimator, Frame
 from .physics import _rays, camera_cos, srgb8_to_linear
 
 TRAIN_MEAN_FILE = "train_mean_depth.npy"

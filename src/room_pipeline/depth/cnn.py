@@ -63,6 +63,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from ..catalog import DEPTH_MODEL
 from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import BackendUnavailable, ConfigError, InputError
@@ -70,7 +71,7 @@ from ..io.atomic import write_bytes
 from ..io.images import read_png
 from ..io.mesh import Mesh
 from ..render.camera import CameraIntrinsics, look_at
-from .estimators import Estimator, Frame, Sample
+from .base import Estimator, Frame, Sample
 from .metrics import valid_gt
 
 CHECKPOINT_FORMAT = "room-depth-cnn/1"
@@ -424,7 +425,7 @@ def checkpoint_path(output_dir: str | Path, patient: str, which: str) -> Path:
     """``<output_dir>/<patient>/depth_model/<which>.pt`` (which: pretrained | finetuned)."""
     if which not in WHICH:
         raise ValueError(f"which must be one of {WHICH}")
-    return Path(output_dir) / patient / "depth_model" / f"{which}.pt"
+    return Path(output_dir) / patient / DEPTH_MODEL / f"{which}.pt"
 
 
 def checkpoint_bytes(model, channels: Sequence[int], input_size: int, meta: Mapping[str, Any]) -> bytes:

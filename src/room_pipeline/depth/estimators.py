@@ -27,13 +27,15 @@ missing prediction folder raise :class:`~room_pipeline.errors.BackendUnavailable
 with the reason; the evaluation stage reports the method as unavailable and
 goes on.
 
+The interface (:class:`Estimator`, :class:`Frame`, :class:`SequenceInfo`, :class:`Sample`) lives in
+:mod:`.base`, which the estimator modules import, so this registry imports them without a cycle.
+
 Also here: :func:`sequence_samples` (the frames of a rendered sequence, loaded
 lazily) and :func:`evaluate` (every estimator on every frame, one table row per
 method and scaling, with per-frame errors and timings).
 """
 from __future__ import annotations
 
-import abc
 import dataclasses
 import json
 import tempfile
@@ -43,60 +45,21 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from ..catalog import DEPTH_MODEL, RGB_NOISY, RGB_SOURCES, SequencePaths
 from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import BackendUnavailable, ConfigError, InputError
 from ..io.images import read_exr, read_png
 from ..render.camera import CameraIntrinsics
+from .base import SCALINGS, Estimator, Frame, Sample, SequenceInfo  # noqa: F401 (re-exported)
+from .baselines import ShadingParams
+from .cnn import CNNParams, TrainParams
+from .external import ExternalSpec
+from .hf import HFModelSpec
 from .metrics import MedianScaler, aggregate, fit_to_shape, frame_errors
 from .physics import LightModel, PhysicsParams, light_is_coaxial, physics_depth
 
-SCALINGS = ("metric", "median")
-INPUTS = ("rgb", "rgb_noisy")
-
-
-@dataclasses.dataclass(frozen=True)
-class Frame:
-    """One input frame: (H, W, 3) uint8 sRGB, the camera, the frame index in its sequence."""
-
-    rgb: np.ndarray
-    camera: CameraIntrinsics
-    index: int = 0
-
-
-@dataclasses.dataclass(frozen=True)
-class SequenceInfo:
-    """What an estimator may know about a sequence besides its frames (never the ground truth).
-
-    root: the sequence folder (None for loose image sets); renderer: the
-    ``metadata/render.json`` "renderer" block (None when not rendered by us).
-    """
-
-    camera: CameraIntrinsics
-    root: Path | None = None
-    patient: str | None = None
-    sequence: str | None = None
-    renderer: Mapping[str, Any] | None = None
-    output_dir: Path | None = None
-
-
-class Estimator(abc.ABC):
-    """Base class: ``name``, ``scaling`` ('metric' | 'median'), ``resizes`` and :meth:`predict`."""
-
-    name: str = ""
-    scaling: str = "median"
-    resizes: bool = False
-
-    @abc.abstractmethod
-    def predict(self, frame: Frame) -> np.ndarray:
-        """(H, W) float32 depth (see the module docstring)."""
-
-    def describe(self) -> dict:
-        """Provenance written next to the numbers (model, weights, settings)."""
-        return {}
-
-    def close(self) -> None:
-        """Release resources (models, processes)."""
+INPUTS = RGB_SOURCES
 
 
 # ----------------------------------------------------------------------------- config
@@ -113,15 +76,15 @@ class DepthParams:
     methods: tuple = ("physics", "cnn", "cnn_pretrained")
     also_median: bool = True
     valid_range_mm: tuple = (1.0, 200.0)
-    input: str = "rgb"
-    frame_stride: int = 1
+    input: str = RGB_NOISY
+    frame_stride: int = 3
     max_frames: int | None = None
     physics: PhysicsParams = PhysicsParams()
-    cnn: Any = None            # cnn.CNNParams
-    train: Any = None          # cnn.TrainParams
+    cnn: CNNParams | None = None
+    train: TrainParams | None = None
     hf: Mapping[str, Any] | None = None
     external: Mapping[str, Any] | None = None
-    shading_sfs: Any = None    # baselines.ShadingParams
+    shading_sfs: ShadingParams | None = None
 
     @property
     def valid_range_m(self) -> tuple[float, float]:
@@ -129,11 +92,7 @@ class DepthParams:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "DepthParams":
-        from .cnn import CNNParams, TrainParams
-
         d = dict(d or {})
-        from .baselines import ShadingParams
-
         nested = {k: d.pop(k, None) for k in ("physics", "cnn", "train", "hf", "external", "shading_sfs")}
         p = params_from_dict(cls, d, "depth")
         hf = dict(nested["hf"] or {})
@@ -153,9 +112,6 @@ class DepthParams:
         both = (set(hf) & set(ext)) | ((set(hf) | set(ext)) & set(BUILTIN))
         if both:
             raise ConfigError(f"depth: method name {sorted(both)[0]!r} is defined twice (built-in, hf, external)")
-        from .external import ExternalSpec
-        from .hf import HFModelSpec
-
         for name, spec in hf.items():              # validate every entry now: config errors before any work
             HFModelSpec.from_dict(spec, f"depth.hf.{name}")
         for name, spec in ext.items():
@@ -217,7 +173,7 @@ def _baseline(kind: str) -> Callable[[str, DepthParams, SequenceInfo], Estimator
             return bl.ShadingSfS(name, params.shading_sfs or bl.ShadingParams())
         if info.output_dir is None:
             raise BackendUnavailable("train_mean: no output_dir to find the training mean in")
-        return bl.TrainMean(name, Path(info.output_dir) / params.cnn.checkpoint_patient / "depth_model"
+        return bl.TrainMean(name, Path(info.output_dir) / params.cnn.checkpoint_patient / DEPTH_MODEL
                             / bl.TRAIN_MEAN_FILE)
     return make
 
@@ -264,25 +220,13 @@ def try_create(name: str, params: DepthParams, info: SequenceInfo) -> tuple[Esti
 # ----------------------------------------------------------------------------- sequences on disk
 
 
-@dataclasses.dataclass(frozen=True)
-class Sample:
-    """One evaluation frame, loaded lazily: ``group`` is the unit of median scaling (a sequence)."""
-
-    group: str
-    index: int
-    name: str
-    camera: CameraIntrinsics
-    load_rgb: Callable[[], np.ndarray]
-    load_gt: Callable[[], np.ndarray]
-
-
 def sequence_samples(seq_dir: Path, input_folder: str = "rgb", stride: int = 1, max_frames: int | None = None,
                      group: str | None = None) -> list[Sample]:
     """Every ``stride``-th frame (at most ``max_frames``) of a rendered sequence among those that have both
     ``<input_folder>/frame_NNNN.png`` and ``depth/frame_NNNN.exr``; ``group`` defaults to the folder."""
     seq_dir = Path(seq_dir)
-    img_dir, depth_dir = seq_dir / input_folder, seq_dir / "depth"
-    calib = seq_dir / "calibration" / "camera_params.json"
+    sp = SequencePaths(seq_dir)
+    img_dir, depth_dir, calib = sp.folder(input_folder), sp.folder("depth"), sp.camera
     for p in (img_dir, depth_dir, calib):
         if not p.exists():
             raise InputError(f"{seq_dir}: missing {p.relative_to(seq_dir)} (render the sequence first)")

@@ -46,7 +46,7 @@ import numpy as np
 
 from ..config.params import params_from_dict
 from ..errors import BackendUnavailable, ConfigError, InputError
-from .estimators import SCALINGS, Estimator, Frame, SequenceInfo
+from .base import SCALINGS, Estimator, Frame, SequenceInfo
 
 UNITS_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 FORMATS = {"npy": ".npy", "exr": ".exr", "png16": ".png"}

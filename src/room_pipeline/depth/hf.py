@@ -31,7 +31,7 @@ import numpy as np
 
 from ..config.params import params_from_dict
 from ..errors import BackendUnavailable, ConfigError
-from .estimators import SCALINGS, Estimator, Frame
+from .base import SCALINGS, Estimator, Frame
 
 OUTPUTS = ("disparity", "depth")
 

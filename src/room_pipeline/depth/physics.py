@@ -110,7 +110,7 @@ class PhysicsParams:
     """Keys of ``depth.physics`` (see conf/depth/default.yaml)."""
 
     cos_model: str = "iterate"
-    iterations: int = 3
+    iterations: int = 1
     normal_smoothing_px: float = 2.0
     min_cos: float = 0.05
     saturated_code: int = 255

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from .. import __version__
+from ..catalog import RGB_SOURCES
 from ..conventions import metadata_block
 from ..errors import ConfigError, InputError, RoomError
 from ..io.atomic import write_json
@@ -131,7 +132,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     p.add_argument("seq", help="rendered sequence folder (<output_dir>/<patient>/<sequence>)")
     p.add_argument("out", help="export folder (created; replaced only with --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty export folder")
-    p.add_argument("--images", choices=("rgb", "rgb_noisy", "none"), default=None,
+    p.add_argument("--images", choices=(*RGB_SOURCES, "none"), default=None,
                    help="frames to copy (colmap, nerfstudio; default rgb; colmap also takes none)")
     p.add_argument("--depth", choices=("png16", "npy", "none"), default=None,
                    help="nerfstudio depth files: png16 (1e-5 m units, default), npy (float32 m), none")

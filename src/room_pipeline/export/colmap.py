@@ -38,9 +38,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..catalog import FOLDERS, RGB_SOURCES
 from ..errors import ConfigError, InputError
 from ..io.atomic import write_bytes, write_text
-from ..dataset.reader import FOLDERS, SequenceReader
+from ..dataset.reader import SequenceReader
 
 #: pixel-centre offset between COLMAP (top-left pixel centre at 0.5) and OpenCV (at 0)
 COLMAP_PIXEL_OFFSET = 0.5
@@ -107,7 +108,7 @@ def sample_depth_points(reader: SequenceReader, i: int, stride: int, frame: dict
 
 def copy_images(reader: SequenceReader, out_dir: Path, source: str) -> list[str]:
     """Copy every frame's PNG of ``source`` (rgb or rgb_noisy) to ``out_dir/images``; the file names."""
-    if source not in ("rgb", "rgb_noisy"):
+    if source not in RGB_SOURCES:
         raise ConfigError(f"images must be 'rgb', 'rgb_noisy' or None, got {source!r}")
     folder = reader.path / FOLDERS[source]
     if not folder.is_dir():

@@ -44,11 +44,12 @@ from typing import Any
 
 import numpy as np
 
+from ..catalog import FOLDERS, RGB_SOURCES
 from ..errors import ConfigError, InputError
 from ..io.atomic import write_bytes, write_json
 from ..io.images import write_png16
 from ..io.ply import write_ply
-from ..dataset.reader import FOLDERS, SequenceReader
+from ..dataset.reader import SequenceReader
 from .colmap import IMAGES_DIR, check_pinhole, copy_images, sample_depth_points
 
 #: OpenCV camera axes (x right, y down, z forward) <-> OpenGL ones (x right, y up, z back)

@@ -4,7 +4,7 @@ One line per rendered frame, ``timestamp tx ty tz qx qy qz qw``: time in seconds
 ``timestamp`` in ``metadata/render.json``), the camera-to-world pose as the camera centre (metres,
 world RAS+) and the unit quaternion of the camera-to-world rotation (Hamilton, scalar **last**,
 written with ``qw >= 0``), OpenCV camera frame (x right, y down, z forward); ``#`` lines are
-comments.  The text is :func:`room_pipeline.planning.trajectory.tum_text` (the same writer as the
+comments.  The text is :func:`room_pipeline.io.tum.tum_text` (the same writer as the
 planned trajectory's ``metadata/trajectory_tum.txt``): 6 decimals for time, 9 for positions and
 quaternion components (nanometres; rotations to about 1e-9 rad).  Tools such as ``evo``
 (``evo_traj tum groundtruth.txt``) read it as is.
@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.atomic import write_text
-from ..planning.trajectory import parse_tum, tum_text
+from ..io.tum import parse_tum, tum_text
 from ..dataset.reader import SequenceReader
 
 FILE_NAME = "groundtruth.txt"

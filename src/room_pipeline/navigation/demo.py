@@ -19,10 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..catalog import SequencePaths
 from ..conventions import metadata_block
 from ..errors import InputError
 from ..io.atomic import write_bytes
 from ..io.mesh import read_obj
+from ..paths import PatientPaths
 from ..render.camera import CameraIntrinsics
 from .lumen import TrueLumen
 from .perception import back_project, median_scale
@@ -87,17 +89,18 @@ def run_demo(seq_dir: Path, frames: list[int], out_dir: Path, params: PlannerPar
     from ..dataset.reader import SequenceReader
 
     seq_dir = Path(seq_dir)
-    if not (seq_dir / "metadata" / "render.json").exists():
-        raise InputError(f"{seq_dir}: not a rendered sequence (no metadata/render.json)")
+    sp = SequencePaths(seq_dir)
+    if not sp.render_json.exists():
+        raise InputError(f"{seq_dir}: not a rendered sequence (no {sp.render_json.relative_to(seq_dir)})")
     reader = SequenceReader(seq_dir, ["rgb"])
-    mesh_path = seq_dir.parent / "anatomy" / "lung_model.obj"
+    mesh_path = PatientPaths(seq_dir.parent.parent, seq_dir.parent.name).mesh
     lumen = TrueLumen(read_obj(mesh_path))
     ids = set(reader.frame_ids)
     estimator = None
     if depth_source != "gt":
         from ..depth.estimators import DepthParams, SequenceInfo, create, Frame
 
-        cam0 = CameraIntrinsics.from_dict(json.loads((seq_dir / "calibration" / "camera_params.json").read_text()))
+        cam0 = CameraIntrinsics.from_dict(json.loads(sp.camera.read_text()))
         estimator = create(depth_source, DepthParams.from_dict(depth_cfg), SequenceInfo(camera=cam0, root=seq_dir))
     results, files = [], {}
     for i in frames:

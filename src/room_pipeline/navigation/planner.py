@@ -52,14 +52,14 @@ class PlannerParams:
     """Planner knobs (lengths in mm as the names say, curvature 1/m)."""
 
     scope_radius_mm: float = 2.5          # collision-sphere radius: Ambu aScope 4 Regular, 5.0 mm outer diameter
-    margin_mm: float = 0.3                # extra clearance the optimiser keeps (the collision flag uses the radius alone)
+    margin_mm: float = 0.2                # extra clearance the optimiser keeps (the collision flag uses the radius alone)
     kappa_max: float = 45.71              # 1/m, the scope's bending limit q1_max / (2 gamma l) (robot geometry)
     segments: int = 3                     # constant-curvature arcs per path
     step_mm: float = 1.0                  # spacing of the collision spheres along the path
     max_length_mm: float = 40.0           # longest path planned
     min_length_mm: float = 3.0            # shortest path planned
-    samples: int = 64                     # paths per cross-entropy round
-    iterations: int = 5                   # cross-entropy rounds
+    samples: int = 48                     # paths per cross-entropy round
+    iterations: int = 4                   # cross-entropy rounds
     elite_fraction: float = 0.15
     w_collision: float = 20.0
     w_bending: float = 0.002

@@ -24,7 +24,7 @@ def _noise_section(overrides: list[str]) -> dict:
     from ..config.compose import find_conf_dir
     from ..errors import ConfigError
     from .calibrate import CalibrationParams
-    from ..stages.noise import NoiseParams
+    from .params import NoiseParams
 
     try:
         base = OmegaConf.load(find_conf_dir() / "noise" / "default.yaml")
@@ -48,7 +48,7 @@ def cmd_calibrate_noise(args: argparse.Namespace) -> int:
     import warnings
 
     from .calibrate import calibrate_folder
-    from ..stages.noise import NoiseParams
+    from .params import NoiseParams
 
     params = NoiseParams.from_dict(_noise_section(args.overrides))
     cp = params.calibration_params()

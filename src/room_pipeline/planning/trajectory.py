@@ -93,6 +93,7 @@ from scipy.spatial.transform import Rotation
 from ..anatomy.centreline import CentrelineGraph
 from ..conventions import MM, metadata_block
 from ..errors import ConfigError, InputError
+from ..io.tum import parse_tum, tum_text  # noqa: F401 (parse_tum re-exported for old imports)
 from ..robot.kinematics import DEFAULT_GEOMETRY, ScopeGeometry
 
 SdfFn = Callable[[np.ndarray], np.ndarray]
@@ -113,15 +114,15 @@ class TrajectoryParams:
     Lengths in millimetres (``_mm``), speeds mm/s, curvature 1/m, times s, angles deg.
     """
 
-    targets: str = "leaves"              # leaves | random_leaves | points
-    max_generation: int | None = 4       # leaves: terminal branches of the tree cut at this generation (null: all leaves)
-    n: int = 10                          # random_leaves: how many
+    targets: str = "random_leaves"       # leaves | random_leaves | points
+    max_generation: int | None = 6       # leaves: terminal branches of the tree cut at this generation (null: all leaves)
+    n: int = 3                           # random_leaves: how many
     seed: int = 0                        # random_leaves: RNG seed
     points: Any = None                   # points: [[x, y, z], ...] metres, or a Med-MPD target.txt path (mm), or a list of paths
     target_tolerance_mm: float = 1.0     # a target point may lie this far outside a centreline point's lumen
-    unreachable: str = "error"           # error | nearest
-    start_offset_mm: float = 0.0         # start this far along the root branch from its first point
-    min_lumen_radius_mm: float = 0.0     # the route ends where the lumen radius falls below this (0 = off)
+    unreachable: str = "nearest"         # error | nearest
+    start_offset_mm: float = 10.0        # start this far along the root branch from its first point
+    min_lumen_radius_mm: float = 3.5     # the route ends where the lumen radius falls below this (0 = off)
     kappa_max: float | None = None       # 1/m; null: the scope geometry's q1_max / (2 gamma l) = 45.71
     curvature_safety: float = 0.95       # the smoother aims at this fraction of kappa_max
     clearance_fraction: float = 0.25     # margin = max(fraction * r, clearance_min_mm) ...
@@ -852,32 +853,6 @@ class Trajectory:
     def to_tum(self) -> str:
         """TUM RGB-D trajectory text: ``timestamp tx ty tz qx qy qz qw`` per line (camera-to-world, m, s)."""
         return tum_text(self.timestamps, self.poses)
-
-
-def tum_text(timestamps: np.ndarray, poses: np.ndarray,
-             header: str = "camera-to-world, OpenCV camera, world RAS+, metres, seconds") -> str:
-    """TUM trajectory text of (T,) timestamps and (T, 4, 4) poses; quaternions with w >= 0."""
-    poses = np.asarray(poses, dtype=np.float64)
-    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
-    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)  # w >= 0 (same rotation)
-    lines = [f"# timestamp tx ty tz qx qy qz qw ({header})"]
-    for t, p, qq in zip(timestamps, poses[:, :3, 3], q):
-        lines.append(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {qq[0]:.9f} {qq[1]:.9f} {qq[2]:.9f} {qq[3]:.9f}")
-    return "\n".join(lines) + "\n"
-
-
-def parse_tum(text: str) -> tuple[np.ndarray, np.ndarray]:
-    """Parse TUM trajectory text -> (timestamps (T,), poses (T, 4, 4)); ``#`` lines are comments."""
-    rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if not rows:
-        return np.zeros(0), np.zeros((0, 4, 4))
-    if any(len(r) != 8 for r in rows):
-        raise InputError("TUM trajectory lines must hold 8 numbers: timestamp tx ty tz qx qy qz qw")
-    a = np.array(rows, dtype=np.float64)
-    poses = np.tile(np.eye(4), (len(a), 1, 1))
-    poses[:, :3, :3] = Rotation.from_quat(a[:, 4:8]).as_matrix()
-    poses[:, :3, 3] = a[:, 1:4]
-    return a[:, 0], poses
 
 
 def timestamps_dict(traj: Trajectory) -> dict:

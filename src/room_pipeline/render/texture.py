@@ -88,11 +88,11 @@ class MucosaTexture:
     seed: int = 0
     mottle_scale_mm: float = 8.0
     mottle_octaves: int = 3
-    mottle_strength: float = 0.25
-    hue_strength: float = 0.15
+    mottle_strength: float = 0.15
+    hue_strength: float = 0.06
     vessel_scale_mm: float = 6.0
     vessel_width: float = 0.10
-    vessel_strength: float = 0.55
+    vessel_strength: float = 0.35
     vessel_color: tuple[float, float, float] = (0.42, 0.06, 0.08)
     ring_spacing_mm: float = 6.0
     ring_width: float = 0.4

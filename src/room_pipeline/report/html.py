@@ -49,8 +49,11 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from ..catalog import (METADATA, RENDER_JSON, RGB_NOISY, RGB_SOURCES, SIMULATION_JSON, TRAJECTORY_JSON,
+                       SequencePaths)
 from ..errors import ConfigError, InputError, RoomError
 from ..io.metrics import is_timing_file, merge_timings, timing_path
+from ..io.records import POSE_KEY, pose_track_from_doc
 
 #: (section id, heading), in page order
 SECTIONS: tuple[tuple[str, str], ...] = (
@@ -63,7 +66,7 @@ SECTIONS: tuple[tuple[str, str], ...] = (
     ("tables", "Paper tables"),
 )
 #: modalities shown as thumbnails, in column order (those the sequence has)
-THUMB_MODALITIES = ("rgb", "rgb_noisy", "depth", "relative_depth", "normals", "flow", "segmentation")
+THUMB_MODALITIES = ("rgb", RGB_NOISY, "depth", "relative_depth", "normals", "flow", "segmentation")
 #: colours of the 3-D view (RGB 0..1), also used by the legend
 COLOURS = {"airway": (0.86, 0.62, 0.56), "planned": (0.16, 0.35, 0.85), "simulated": (0.95, 0.50, 0.05),
            "rendered": (0.10, 0.65, 0.25), "scope": (0.25, 0.25, 0.28), "tip": (0.85, 0.05, 0.10)}
@@ -309,7 +312,7 @@ def find_patients(output_dir: Path) -> list[Path]:
 def find_sequence_dirs(patient: Path) -> list[Path]:
     """Sequence folders of a patient (sorted): sub-folders holding ``metadata/``."""
     return sorted(p for p in Path(patient).iterdir()
-                  if p.is_dir() and not p.name.startswith(".") and (p / "metadata").is_dir())
+                  if p.is_dir() and not p.name.startswith(".") and (p / METADATA).is_dir())
 
 
 # =========================================================================== section: summary
@@ -318,8 +321,8 @@ def find_sequence_dirs(patient: Path) -> list[Path]:
 def _sequence_row(seq: Path) -> list[str]:
     from ..dataset.reader import SequenceReader, is_sequence
 
-    traj, why_t = _read_json(seq / "metadata" / "trajectory.json")
-    sim, why_s = _read_json(seq / "metadata" / "simulation.json")
+    traj, why_t = _read_json(SequencePaths(seq).trajectory)
+    sim, why_s = _read_json(SequencePaths(seq).simulation)
     has = lambda doc: isinstance(doc, dict) and bool(doc.get("frames"))  # noqa: E731
     planned = f"{len(traj['frames'])}" if has(traj) else f"- ({why_t or 'no frames'})"
     if isinstance(traj, dict) and isinstance(traj.get("summary"), dict) and "length_m" in traj["summary"]:
@@ -393,7 +396,7 @@ def _thumb_column(mod: str, frames: list[dict], px: int) -> tuple[str, list[str]
             out.append(_img(png_uri(t), w_alt(f), t.shape[1], t.shape[0]))
         return out
 
-    if mod in ("rgb", "rgb_noisy"):
+    if mod in RGB_SOURCES:
         head = "RGB (8-bit sRGB)" if mod == "rgb" else "RGB with sensor noise"
         return _esc(head), cells([f[mod] for f in frames])
     if mod == "depth":
@@ -490,8 +493,8 @@ def section_realism(opts: ReportOptions, patients: list[Path], n: int = 6) -> st
     ours: list[Path] = []
     for p in patients:
         for sq in find_sequence_dirs(p):
-            for sub in ("rgb_noisy", "rgb"):
-                fr = sorted((sq / sub).glob("frame_*.png"))
+            for sub in (RGB_NOISY, "rgb"):
+                fr = sorted(SequencePaths(sq).folder(sub).glob("frame_*.png"))
                 if fr:
                     ours += fr
                     break
@@ -559,8 +562,6 @@ def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_
     frame the distance (m) between the reconstructed tip and the simulated ``tip_pose``).
     Raises InputError when the inputs lack what the reconstruction needs.
     """
-    import types
-
     from ..robot.kinematics import ScopeGeometry, fk
     from ..robot.pybullet_sim import Route
 
@@ -568,9 +569,9 @@ def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_
         raise InputError(f"insertion model {robot.get('insertion_model')!r}: the shaft shape is not recorded "
                          "(only the kinematic model's shaft follows the planned route)")
     try:
-        tf = trajectory["frames"]
-        poses = np.array([f["pose"] for f in tf], dtype=np.float64)
-        arclength = np.array([f["arclength"] for f in tf], dtype=np.float64)
+        planned = pose_track_from_doc(trajectory, POSE_KEY[TRAJECTORY_JSON], TRAJECTORY_JSON)
+        if planned.arclength is None:
+            raise KeyError("arclength")
         k = robot.get("kinematics") or {}
         geometry = ScopeGeometry(l=float(k.get("bending_length", ScopeGeometry.l)),
                                  gamma=float(k.get("gamma", ScopeGeometry.gamma)),
@@ -579,10 +580,10 @@ def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_
         picks = pick_frames(len(sf), n_frames + 1)[1:] if n_frames > 0 and len(sf) > 1 else []
         picks = picks[-n_frames:] if n_frames else []
         qs = [np.asarray(sf[i]["q_act"], dtype=np.float64) for i in picks]
-        tips = np.array([np.asarray(sf[i]["tip_pose"], dtype=np.float64)[:3, 3] for i in picks]).reshape(-1, 3)
-    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        tips = pose_track_from_doc(simulation, POSE_KEY[SIMULATION_JSON], SIMULATION_JSON).positions[picks]
+    except (KeyError, TypeError, ValueError, IndexError, InputError) as exc:
         raise InputError(f"trajectory/simulation/robot_config lack what the scope drawing needs ({exc})") from None
-    route = Route.from_trajectory(types.SimpleNamespace(poses=poses, arclength=arclength))
+    route = Route.from_trajectory(planned)
     lines, mismatch = [], []
     for q, tip in zip(qs, tips):
         s0 = float(route.s[0])
@@ -600,37 +601,35 @@ def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_
 
 def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[str]]:
     """The 3-D scene of one sequence and the caption lines saying what is drawn (and what is not)."""
-    from ..dataset.reader import RENDER_JSON
-
-    meta = seq / "metadata"
+    sp = SequencePaths(seq)
     sc = Scene3D()
     notes = []
     if mesh is not None:
         sc.mesh_vertices, sc.mesh_faces = mesh.vertices, mesh.faces
-    traj, why = _read_json(meta / "trajectory.json")
+    traj, why = _read_json(sp.trajectory)
     try:
         if traj is not None:
-            sc.planned = np.array([f["pose"] for f in traj["frames"]], dtype=np.float64)[:, :3, 3]
-    except (KeyError, TypeError, ValueError, IndexError):
+            sc.planned = pose_track_from_doc(traj, POSE_KEY[TRAJECTORY_JSON], sp.trajectory).positions
+    except (KeyError, TypeError, ValueError, IndexError, InputError):
         traj, why = None, "trajectory.json has no 4x4 frame poses"
     if sc.planned is None:
         notes.append(f"planned trajectory not drawn: {why}")
-    sim, why_s = _read_json(meta / "simulation.json")
+    sim, why_s = _read_json(sp.simulation)
     try:
         if sim is not None:
-            sc.simulated = np.array([f["tip_pose"] for f in sim["frames"]], dtype=np.float64)[:, :3, 3]
-    except (KeyError, TypeError, ValueError, IndexError):
+            sc.simulated = pose_track_from_doc(sim, POSE_KEY[SIMULATION_JSON], sp.simulation).positions
+    except (KeyError, TypeError, ValueError, IndexError, InputError):
         sim, why_s = None, "simulation.json has no tip poses"
     if sc.simulated is None:
         notes.append(f"simulated tip path not drawn: {why_s}")
-    rend, _ = _read_json(seq / RENDER_JSON)
+    rend, _ = _read_json(sp.render_json)
     if isinstance(rend, dict) and rend.get("frames"):
         try:
-            sc.rendered = np.array([f["pose"] for f in rend["frames"]], dtype=np.float64)[:, :3, 3]
-        except (KeyError, TypeError, ValueError, IndexError):
+            sc.rendered = pose_track_from_doc(rend, POSE_KEY[RENDER_JSON], sp.render_json).positions
+        except (KeyError, TypeError, ValueError, IndexError, InputError):
             notes.append("rendered cameras not drawn: render.json frames lack 4x4 poses")
     if scope_frames and traj is not None and sim is not None:
-        robot, why_r = _read_json(meta / "robot_config.json")
+        robot, why_r = _read_json(sp.robot_config)
         if robot is None:
             notes.append(f"scope not drawn: {why_r}")
         else:

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from ..catalog import split_key
 from ..config.compose import section
 from ..depth.estimators import (ORACLES, TRAINED_ON_CHECKPOINT_PATIENT, DepthParams, SequenceInfo, evaluate,
                                 sequence_samples, try_create)
@@ -34,14 +35,13 @@ from ..depth.metrics import METRIC_KEYS, UNITS
 from ..evaluate.allocator import keep_freed_memory
 from ..io.atomic import write_json, write_text
 from .common import StageTimer, _finite, metadata, patient_paths, read_json, round_floats, write_metrics
-from .trajectory import split_key
 
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
     paths = patient_paths(cfg, patient)
-    ev = paths.evaluation(sequence)
-    return [ev / "depth.json", ev / "depth_errors.csv", paths.metrics(f"evaluate_depth_{sequence}")]
+    ev = paths.eval(sequence)
+    return [ev.depth, ev.depth_errors, paths.metrics(f"evaluate_depth_{sequence}")]
 
 
 def declared_scaling(name: str, p: DepthParams) -> str:
@@ -88,7 +88,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     cpu0 = time.process_time()
     with StageTimer() as timer:
         samples = sequence_samples(seq, p.input, p.frame_stride, p.max_frames, group=key)
-        render_json = seq / "metadata" / "render.json"
+        render_json = paths.seq(sequence).render_json
         renderer = read_json(render_json).get("renderer") if render_json.is_file() else None
         info = SequenceInfo(camera=samples[0].camera, root=seq, patient=patient, sequence=sequence,
                             renderer=renderer, output_dir=Path(cfg.output_dir))
@@ -118,7 +118,7 @@ def run(cfg: DictConfig, key: str) -> dict:
         if sc == "metric" and p.also_median:
             methods[f"{name}_median"] = {**_nan_row("median", reason), "oracle": name in ORACLES}
     lo, hi = (float(x) for x in p.valid_range_mm)
-    ev = paths.evaluation(sequence)
+    ev = paths.eval(sequence)
     doc = {"methods": round_floats(methods, 6), "units": UNITS, "valid_range_mm": [lo, hi],
            "n_frames": len(samples), "frames": [s.name for s in samples], "input": p.input,
            "estimators": described, "wall_time_s": round(timer.wall_s, 3),
@@ -126,8 +126,8 @@ def run(cfg: DictConfig, key: str) -> dict:
            "protocol": "frame-averaged metrics on pixels with ground truth in valid_range_mm and a finite positive "
                        "prediction; 'median' rows scaled once per sequence by median(gt) / median(pred)",
            "metadata": metadata("evaluate_depth", patient, cfg, ("depth",), sequence=sequence)}
-    write_json(ev / "depth.json", _finite(doc))
-    write_text(ev / "depth_errors.csv", errors_csv(rows, [s.name for s in samples]))
+    write_json(ev.depth, _finite(doc))
+    write_text(ev.depth_errors, errors_csv(rows, [s.name for s in samples]))
     summary = {name: {k: m.get(k) for k in ("AbsRel", "delta1", "L1_mm", "seconds_per_frame")}
                for name, m in methods.items() if m["available"]}
     metrics = {"frames": len(samples), "methods_available": len(rows), "methods_unavailable": len(unavailable),

@@ -33,12 +33,12 @@ from ..evaluate import pose_methods as pm
 from ..evaluate.allocator import keep_freed_memory
 from ..anatomy.centreline import CentrelineGraph
 from ..evaluate.pose_metrics import per_frame_errors, pose_metrics, segment_scores
+from ..catalog import RGB_NOISY, SequencePaths, split_key
 from ..evaluate.route_segments import label_frames
 from ..io.atomic import write_json, write_text
 from ..io.images import read_png
 from ..render.camera import CameraIntrinsics
 from .common import StageTimer, _finite, metadata, patient_paths, read_json, round_floats, write_metrics
-from .trajectory import split_key
 
 #: per-frame curves written to pose_errors.csv (column suffixes)
 CURVES = ("position_error_mm", "orientation_error_deg", "step_rotation_error_deg", "step_translation_error_deg")
@@ -48,9 +48,9 @@ CURVES = ("position_error_mm", "orientation_error_deg", "step_rotation_error_deg
 class PoseEvalParams:
     """Keys of ``evaluate.pose`` in ``conf/evaluate/default.yaml`` (see its comments for units)."""
 
-    methods: tuple = ("colmap", "sift_vo", "orb_vo")
+    methods: tuple = ("sift_vo", "orb_vo")
     images: str = "noisy"
-    frame_stride: int = 1
+    frame_stride: int = 3
     max_frames: int | None = None
     downscale: float = 2.0
     seed: int = 0
@@ -92,21 +92,21 @@ class PoseEvalParams:
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
-    ev = patient_paths(cfg, patient).evaluation(sequence)
-    return [ev / "pose.json", ev / "pose_errors.csv"]
+    ev = patient_paths(cfg, patient).eval(sequence)
+    return [ev.pose, ev.pose_errors]
 
 
 def image_dir(seq: Path, which: str) -> Path:
     """``rgb_noisy/`` when asked for and present, else ``rgb/``."""
-    if which == "noisy" and (seq / "rgb_noisy").is_dir() and any((seq / "rgb_noisy").glob("frame_*.png")):
-        return seq / "rgb_noisy"
-    return seq / "rgb"
+    sp = SequencePaths(seq)
+    if which == "noisy" and sp.rgb_noisy.is_dir() and any(sp.rgb_noisy.glob("frame_*.png")):
+        return sp.folder(RGB_NOISY)
+    return sp.folder("rgb")
 
 
 def load_sequence(seq: Path, p: PoseEvalParams) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, dict]:
     """(images RGB uint8, K (downscaled), ground-truth c2w poses, provenance) of the selected frames."""
-    render_json = seq / "metadata" / "render.json"
-    calib_json = seq / "calibration" / "camera_params.json"
+    render_json, calib_json = SequencePaths(seq).render_json, SequencePaths(seq).camera
     for f in (render_json, calib_json):
         if not f.is_file():
             raise InputError(f"{f} not found (run the render stage first)")
@@ -220,7 +220,7 @@ def run(cfg: DictConfig, key: str) -> dict:
                                        p.bifurcation_radius_factor)
         results, curves = evaluate_methods(images, K, poses_gt, p, labels)
     tau, T = f"{p.rra_threshold_deg:g}", int(p.auc_max_deg)
-    write_json(paths.evaluation(sequence) / "pose.json", _finite(round_floats({
+    write_json(paths.eval(sequence).pose, _finite(round_floats({
         "methods": results, "input": info, "units": UNITS,
         "segments": {"labels": labels, "bifurcation_regions": regions,
                      "definition": "bifurcation_<k>: camera centre within bifurcation_radius_factor x the parent "
@@ -231,7 +231,7 @@ def run(cfg: DictConfig, key: str) -> dict:
                     f"pairs under {tau} deg; AUC@{T}: mean over 1..{T} deg thresholds of the share of pairs with "
                     f"max(rot, trans) error under the threshold; pairs with an unregistered frame count 180 deg",
         "metadata": metadata("evaluate_pose", patient, cfg, ("evaluate",), sequence=sequence)}, 6)))
-    write_text(paths.evaluation(sequence) / "pose_errors.csv", errors_csv(info["frames"], curves))
+    write_text(paths.eval(sequence).pose_errors, errors_csv(info["frames"], curves))
     keys = (f"RRA@{tau}", f"RTA@{tau}", f"AUC@{T}", "registration_rate", "ate_rmse_mm", "seconds_per_frame")
     metrics: dict[str, Any] = {"frames": len(images), "wall_time_s": round(timer.wall_s, 3),
                                "cpu_time_s": round(time.process_time() - cpu0, 3),

@@ -16,80 +16,26 @@ different noise in every frame and sequence.
 """
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import time
 from pathlib import Path
-from typing import Any, Mapping
 
 import numpy as np
 from omegaconf import DictConfig
 
+from ..catalog import FOLDERS, RGB_NOISY, split_key
 from ..config.compose import section
-from ..config.params import params_from_dict
 from ..conventions import metadata_block
-from ..errors import ConfigError, InputError
+from ..errors import InputError
 from ..io.atomic import write_json
 from ..io.images import read_png, write_png8
-from ..noise.calibrate import CalibrationParams
+from ..noise.params import (PROJECT_ROOT, NoiseParams, frame_seed, resolve_profile,  # noqa: F401 (re-exported)
+                             sequence_hash)
 from ..noise.profile import NoiseProfile
 from ..noise.synthesize import add_noise, filter_table
 from .common import StageTimer, file_sha256, metadata, patient_paths, write_metrics
-from .trajectory import split_key
 
-#: project root (profile paths in the config are relative to it when not found from the working directory)
-PROJECT_ROOT = Path(__file__).resolve().parents[3]
-IN_FOLDER = "rgb"
-OUT_FOLDER = "rgb_noisy"
-
-
-@dataclasses.dataclass(frozen=True)
-class NoiseParams:
-    """Keys of ``conf/noise/default.yaml`` (see its comments for units)."""
-
-    profile: str = "data/noise_profiles/brea_depth_ascope4.npz"
-    beta: float = 1.0
-    seed: int = 0
-    calibration: Any = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None) -> "NoiseParams":
-        p = params_from_dict(cls, d, "noise")
-        if not np.isfinite(p.beta) or p.beta < 0:
-            raise ConfigError(f"noise.beta must be finite and >= 0, got {p.beta}")
-        if p.seed < 0:
-            raise ConfigError(f"noise.seed must be >= 0, got {p.seed}")
-        if not p.profile:
-            raise ConfigError("noise.profile: path of a noise profile (.npz) required")
-        if p.calibration is not None and not isinstance(p.calibration, Mapping):
-            raise ConfigError("noise.calibration must be a mapping of calibration keys")
-        p.calibration_params()          # validate the calibration keys early
-        return p
-
-    def calibration_params(self) -> CalibrationParams:
-        return params_from_dict(CalibrationParams, dict(self.calibration or {}), "noise.calibration")
-
-    def profile_path(self) -> Path:
-        """The profile file: absolute, or relative to the working directory, else to the project root."""
-        return resolve_profile(self.profile)
-
-
-def resolve_profile(path: str | Path) -> Path:
-    p = Path(path)
-    if p.is_absolute() or p.exists():
-        return p
-    alt = PROJECT_ROOT / p
-    return alt if alt.exists() else p
-
-
-def sequence_hash(sequence: str) -> int:
-    """Stable 32-bit hash of a sequence name (sha256, first 4 bytes little-endian); never Python's hash()."""
-    return int.from_bytes(hashlib.sha256(sequence.encode("utf-8")).digest()[:4], "little")
-
-
-def frame_seed(seed: int, sequence: str, index: int) -> np.random.SeedSequence:
-    """The seed of frame ``index`` of ``sequence`` (see the module docstring)."""
-    return np.random.SeedSequence([int(seed), sequence_hash(sequence), int(index)])
+IN_FOLDER = FOLDERS["rgb"]
+OUT_FOLDER = FOLDERS[RGB_NOISY]
 
 
 def frame_index(path: Path) -> int:
@@ -101,16 +47,16 @@ def frame_index(path: Path) -> int:
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
-    seq = patient_paths(cfg, patient).sequence(sequence)
-    return [seq / OUT_FOLDER, seq / "metadata" / "noise.json"]
+    seq = patient_paths(cfg, patient).seq(sequence)
+    return [seq.rgb_noisy, seq.noise_json]
 
 
 def run(cfg: DictConfig, key: str) -> dict:
     patient, sequence = split_key(key)
     p = NoiseParams.from_dict(section(cfg, "noise"))
     paths = patient_paths(cfg, patient)
-    seq = paths.sequence(sequence)
-    src_dir, out_dir = seq / IN_FOLDER, seq / OUT_FOLDER
+    seq = paths.seq(sequence)
+    src_dir, out_dir = seq.folder("rgb"), seq.rgb_noisy
     frames = sorted(src_dir.glob("frame_*.png")) if src_dir.is_dir() else []
     if not frames:
         raise InputError(f"{src_dir}: no rendered frames (frame_NNNN.png); run the render stage with rgb")
@@ -141,7 +87,7 @@ def run(cfg: DictConfig, key: str) -> dict:
             clipped.append(float(np.mean((noisy == 0) | (noisy == 255))))
             records.append({"file": f.name, "index": idx, "seed_entropy": [int(v) for v in ss.entropy],
                             "added_std_levels": round(added_std[-1], 6)})
-    write_json(seq / "metadata" / "noise.json", {
+    write_json(seq.noise_json, {
         "input": f"{IN_FOLDER}/frame_NNNN.png (clean renders, kept)",
         "output": f"{OUT_FOLDER}/frame_NNNN.png = clip(round(rgb + beta * g(luma) * n), 0, 255), uint8 sRGB",
         "beta": p.beta, "seed": p.seed,

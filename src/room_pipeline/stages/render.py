@@ -57,20 +57,18 @@ from ..io.atomic import write_json
 from ..io.images import write_png8, write_png16
 from ..io.storage import POINT_CLOUD_JSON, FrameWriter, StorageParams, stride_mask
 from ..io.mesh import Mesh, read_obj
+from ..io.records import pose_track
 from ..render.camera import CameraIntrinsics
 from ..render.scene import Film, Scene, TipLight, TissueMaterial
 from ..render.texture import MucosaTexture, airway_coordinates
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
-from .trajectory import split_key
-
-#: modality -> output folder (the ROOM layout)
-FOLDERS = {"rgb": "rgb", "depth": "depth", "relative_depth": "relative_depth", "normals": "surface_normals",
-           "flow": "optical_flow", "point_cloud": "point_clouds", "segmentation": "segmentation"}
+from ..catalog import RENDER_FOLDERS as FOLDERS, SequencePaths, split_key  # FOLDERS: modality -> folder
 
 
 @dataclasses.dataclass(frozen=True)
 class RenderParams:
-    """Keys of ``conf/render/default.yaml`` (see its comments for units)."""
+    """Keys of ``conf/render/default.yaml`` (see its comments for units); defaults equal to it
+    (``tests/test_conf_defaults.py``)."""
 
     backend: str = "raycast"
     poses: str = "simulated"
@@ -83,20 +81,20 @@ class RenderParams:
     near_mm: float = 0.1
     far_mm: float = 500.0
     distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)
-    base_color: tuple = (0.80, 0.38, 0.32)
+    base_color: tuple = (0.95, 0.392, 0.454)
     roughness: float = 0.35
     specular: float = 0.5
     interreflection: float = 0.0
     interreflection_window_mm: float = 6.0
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
-    light_offset_mm: tuple = (0.0, 0.0, 0.0)
-    light_spot_exponent: float = 0.0
+    light_offset_mm: tuple = (0.0, -1.1, 0.0)
+    light_spot_exponent: float = 2.767
     light_falloff: str = "inverse_square"
     light_falloff_length_mm: float = 20.0
     exposure_ev: float | None = None
     auto_exposure: str = "per_frame"
-    auto_exposure_target: float = 0.8
+    auto_exposure_target: float = 0.5
     auto_exposure_percentile: float = 95.0
     auto_exposure_smoothing_s: float = 0.3
     auto_exposure_min_ev: float = -12.0
@@ -104,12 +102,12 @@ class RenderParams:
     auto_exposure_highlight_percentile: float = 99.0
     auto_exposure_highlight_max: float = 0.9
     vignetting: float = 0.0
-    veiling_glare: float = 0.0
+    veiling_glare: float = 0.12
     response: str = "srgb"
     gamma: float = 2.2
     shading_stride: int = 2
     texture: dict = dataclasses.field(default_factory=dict)
-    cycles_samples: int = 16
+    cycles_samples: int = 4
     cycles_denoise: bool = True
     storage: dict = dataclasses.field(default_factory=dict)
 
@@ -202,8 +200,8 @@ def texture_params(d: Mapping[str, Any] | None) -> MucosaTexture:
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
-    seq = patient_paths(cfg, patient).sequence(sequence)
-    return [seq / f for f in FOLDERS.values()] + [seq / "calibration", seq / "metadata" / "render.json"]
+    seq = patient_paths(cfg, patient).seq(sequence)
+    return seq.render_folders() + [seq.calibration, seq.render_json]
 
 
 def face_labels(mesh: Mesh, graph: CentrelineGraph) -> tuple[np.ndarray, dict]:
@@ -220,11 +218,10 @@ def face_labels(mesh: Mesh, graph: CentrelineGraph) -> tuple[np.ndarray, dict]:
 
 def load_poses(meta_dir, which: str) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps, camera-to-world poses) of the planned or the simulated sequence."""
-    if which == "simulated":
-        doc = read_json(meta_dir / "simulation.json")
-        return (np.array([f["timestamp"] for f in doc["frames"]]), np.array([f["tip_pose"] for f in doc["frames"]]))
-    doc = read_json(meta_dir / "trajectory.json")
-    return np.array([f["timestamp"] for f in doc["frames"]]), np.array([f["pose"] for f in doc["frames"]])
+    sp = SequencePaths(Path(meta_dir).parent)
+    path = sp.simulation if which == "simulated" else sp.trajectory
+    track = pose_track(path, read_json(path))
+    return track.timestamps, track.poses
 
 
 def execution_params(cfg: DictConfig, frames: int | None = None) -> ExecutionParams:
@@ -453,6 +450,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     execution_params(cfg)                                   # bad execution config: stop before any work
     paths = patient_paths(cfg, patient)
     seq = paths.sequence(sequence)
+    sp = paths.seq(sequence)
     with StageTimer() as timer:
         ts, poses = load_poses(paths.sequence_metadata(sequence), p.poses)
         src = np.arange(0, len(ts), p.frame_stride)
@@ -463,7 +461,7 @@ def run(cfg: DictConfig, key: str) -> dict:
         ex_params = execution_params(cfg, len(src))
         parallel = ex_params.backend != "serial" and ex_params.workers > 1
         mods = set(p.modalities)
-        ensure_writable(*(seq / f for f in FOLDERS.values()), seq / "calibration", seq / "metadata")
+        ensure_writable(*sp.render_folders(), sp.calibration, sp.metadata)
         remove_stale_temp_files(seq)
         mesh = read_obj(paths.mesh)
         graph = CentrelineGraph.from_dict(read_json(paths.centreline_graph))
@@ -490,15 +488,15 @@ def run(cfg: DictConfig, key: str) -> dict:
         n_hit = [r["hit"] for r in results]
         n_valid_flow = [r["flow_valid"] for r in results if r["flow_valid"] is not None]
     if "segmentation" in mods:
-        write_json(seq / "segmentation" / "legend.json",
+        write_json(sp.legend,
                    {"encoding": "uint16 PNG: label = airway branch id + 1, 0 = no hit",
                     "branch_ids": "centreline_graph.json ids", "labels": legend})
     # without point_cloud in render.modalities no PLY is written: the reader builds clouds from depth/ then
     stored = storage if "point_cloud" in mods else dataclasses.replace(storage, point_clouds="on_demand")
     precision = stored.precision()
-    write_json(seq / "point_clouds" / POINT_CLOUD_JSON, {**precision["point_clouds"], "requested": "point_cloud" in mods})
-    write_json(seq / "calibration" / "camera_params.json", {**cam.to_dict(), "storage": precision})
-    write_json(seq / "metadata" / "render.json", {
+    write_json(sp.folder("point_cloud") / POINT_CLOUD_JSON, {**precision["point_clouds"], "requested": "point_cloud" in mods})
+    write_json(sp.camera, {**cam.to_dict(), "storage": precision})
+    write_json(sp.render_json, {
         "renderer": renderer_meta, "storage": {"params": dataclasses.asdict(storage), "precision": precision},
         "poses": p.poses, "modalities": sorted(mods), "frames": frames,
         "flow": "forward t -> t+1 in pixels (u right, v down); the last frame has zero flow and no valid pixel",

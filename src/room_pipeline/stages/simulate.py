@@ -18,20 +18,19 @@ mesh; the count is recorded.
 """
 from __future__ import annotations
 
-import types
-
 import numpy as np
 from omegaconf import DictConfig
 
+from ..catalog import split_key
 from ..config.compose import section
 from ..errors import InputError
 from ..io.atomic import write_json, write_text
 from ..io.mesh import Mesh, read_obj
-from ..planning.trajectory import tum_text
+from ..io.records import pose_track
+from ..io.tum import tum_text
 from ..robot.kinematics import ScopeGeometry
 from ..robot.pybullet_sim import SimParams, check_inputs, robot_config, simulate
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
-from .trajectory import split_key
 
 #: report entries that depend on the machine, kept out of the data files (they go to metrics)
 _TIMING_KEYS = ("wall_time_s", "realtime_factor")
@@ -39,8 +38,8 @@ _TIMING_KEYS = ("wall_time_s", "realtime_factor")
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
-    meta = patient_paths(cfg, patient).sequence_metadata(sequence)
-    return [meta / "robot_config.json", meta / "simulation.json", meta / "simulated_tum.txt"]
+    s = patient_paths(cfg, patient).seq(sequence)
+    return [s.robot_config, s.simulation, s.simulated_tum]
 
 
 def open_entrance(mesh: Mesh, start: np.ndarray, tangent: np.ndarray, radius: float) -> tuple[Mesh, int]:
@@ -58,27 +57,15 @@ def _read_inputs(trajectory_json, graph_json, key: str):
     malformed file is one :class:`InputError` line naming it."""
     path = trajectory_json
     try:
-        frames = read_json(path)["frames"]
-        traj = types.SimpleNamespace(
-            timestamps=np.array([f["timestamp"] for f in frames], float),
-            poses=np.array([f["pose"] for f in frames], float),
-            arclength=np.array([f["arclength"] for f in frames], float),
-            # a joint-space plan (trajectory.joint_plan): the path the shaft follows and the joints to command
-            path_poses=(np.array([f["path_pose"] for f in frames], float) if frames and "path_pose" in frames[0]
-                        else None),
-            joints=np.array([f["q"] for f in frames], float) if frames and "q" in frames[0] else None)
-        if traj.poses.ndim != 3 or traj.poses.shape[1:] != (4, 4):
-            raise ValueError(f"poses of shape {traj.poses.shape}, expected (N, 4, 4)")
-        if traj.path_poses is not None and traj.path_poses.shape != traj.poses.shape:
-            raise ValueError(f"path_pose of shape {traj.path_poses.shape}, expected {traj.poses.shape}")
-        if traj.joints is not None and traj.joints.shape != (len(frames), 3):
-            raise ValueError(f"q of shape {traj.joints.shape}, expected ({len(frames)}, 3)")
+        traj = pose_track(path, read_json(path))
+        if traj.arclength is None:
+            raise ValueError("frames without 'arclength'")
         path = graph_json
         graph = read_json(path)
         root_radius = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
     except StopIteration:
         raise InputError(f"simulate {key}: {path} has no root branch (parent -1)") from None
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, IndexError, InputError) as exc:
         raise InputError(f"simulate {key}: cannot read {path} ({type(exc).__name__}: "
                          f"{' '.join(str(exc).split())})") from None
     if not (np.isfinite(root_radius) and root_radius > 0):
@@ -91,9 +78,9 @@ def run(cfg: DictConfig, key: str) -> dict:
     params = SimParams.from_dict(section(cfg, "simulate"))
     geometry = ScopeGeometry()
     paths = patient_paths(cfg, patient)
-    meta_dir = paths.sequence_metadata(sequence)
+    sp = paths.seq(sequence)
     with StageTimer() as timer:
-        traj, root_radius = _read_inputs(meta_dir / "trajectory.json", paths.centreline_graph, key)
+        traj, root_radius = _read_inputs(sp.trajectory, paths.centreline_graph, key)
         try:
             wall = read_obj(paths.collision_mesh)
         except (OSError, ValueError, IndexError) as exc:
@@ -102,7 +89,7 @@ def run(cfg: DictConfig, key: str) -> dict:
         try:
             check_inputs(traj, wall)
         except InputError as exc:
-            raise InputError(f"{key}: {exc} ({paths.collision_mesh}, {meta_dir / 'trajectory.json'})") from None
+            raise InputError(f"{key}: {exc} ({paths.collision_mesh}, {sp.trajectory})") from None
         mesh, n_dropped = open_entrance(wall, traj.poses[0, :3, 3], traj.poses[0, :3, 2], root_radius)
         try:
             res = simulate(traj, mesh, params, geometry)
@@ -118,12 +105,12 @@ def run(cfg: DictConfig, key: str) -> dict:
     sim_doc["metadata"] = metadata("simulate", patient, cfg, ("simulate",), sequence=sequence)
     mesh_meta = read_json(paths.mesh_metadata) if paths.mesh_metadata.is_file() else {}
     collision = mesh_meta.get("report", {}).get("collision")
-    write_json(meta_dir / "robot_config.json", {**robot_config(params, geometry),
+    write_json(sp.robot_config, {**robot_config(params, geometry),
                                                "collision_mesh": {"file": paths.collision_mesh.name,
                                                                   "units": "m; error bounds mm", **(collision or {})},
                                                "metadata": metadata("simulate", patient, cfg, ("simulate",))})
-    write_json(meta_dir / "simulation.json", sim_doc)
-    write_text(meta_dir / "simulated_tum.txt",
+    write_json(sp.simulation, sim_doc)
+    write_text(sp.simulated_tum,
                tum_text(res.timestamps, res.tip_poses, "simulated camera-to-world, OpenCV camera, world RAS+, m, s"))
     r = res.report
     metrics = {"frames": int(len(res.timestamps)),

@@ -160,7 +160,7 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
     for pat in patients:
         paths = PatientPaths(output_dir, pat)
         for seq in sequences:
-            f = paths.evaluation(seq) / "depth.json"
+            f = paths.eval(seq).depth
             if f.is_file():
                 doc = _read(f)
                 if "%" in str((doc.get("units") or {}).get("delta1", "")):
@@ -169,7 +169,7 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
                             if isinstance(rec.get(k), (int, float)):
                                 rec[k] = rec[k] / 100.0
                 depth.setdefault(pat, []).append(doc)
-        f = paths.evaluation_root / "depth_finetune.json"      # written by train_depth
+        f = paths.depth_finetune      # written by train_depth
         if f.is_file():
             finetune.append(_read(f))
     return depth, finetune
@@ -180,7 +180,7 @@ def read_pose_files(output_dir: Path, patients: list[str], sequences: list[str])
     docs = []
     for pat in patients:
         for seq in sequences:
-            f = PatientPaths(output_dir, pat).evaluation(seq) / "pose.json"
+            f = PatientPaths(output_dir, pat).eval(seq).pose
             if f.is_file():
                 docs.append(_read(f))
     return docs

@@ -58,7 +58,7 @@ DEFINITION = {
 
 def outputs(cfg: DictConfig, patient: str) -> list:
     paths = patient_paths(cfg, patient)
-    return [paths.root / "depth_model", paths.evaluation_root / "depth_finetune.json", paths.metrics("train_depth")]
+    return [paths.depth_model, paths.depth_finetune, paths.metrics("train_depth")]
 
 
 def split_indices(n: int, holdout_fraction: float, gap: int, train_stride: int, eval_stride: int
@@ -135,7 +135,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
     p = DepthParams.from_dict(section(cfg, "depth"))
     tp, cp = p.train, p.cnn
     paths = patient_paths(cfg, patient)
-    model_dir = paths.root / "depth_model"
+    model_dir = paths.depth_model
     rng_m = p.valid_range_m
     keep_freed_memory()          # full-frame temporaries: no page-fault churn (evaluate/allocator.py)
     cpu0 = time.process_time()
@@ -170,7 +170,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
             for which in ("pretrained", "finetuned"):            # no stale weights next to a failed run
                 checkpoint_path(cfg.output_dir, patient, which).unlink(missing_ok=True)
             write_json(model_dir / "training.json", _finite(training))
-            write_json(paths.evaluation_root / "depth_finetune.json",
+            write_json(paths.depth_finetune,
                        _finite({"datasets": results, "definition": DEFINITION}))
             write_metrics(paths, "train_depth", {"datasets": results, "training": training})
             return {"available": False, "reason": str(exc)}
@@ -227,7 +227,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
     doc = {"datasets": {k: round_floats(v, 6) if isinstance(v, dict) else v for k, v in results.items()},
            "training": training}
     # the tables' input (no timings: same data and seed -> same bytes)
-    write_json(paths.evaluation_root / "depth_finetune.json", _finite({"datasets": doc["datasets"],
+    write_json(paths.depth_finetune, _finite({"datasets": doc["datasets"],
                                                                        "definition": DEFINITION}))
     write_metrics(paths, "train_depth", doc)
     return {"available": True, "pretrain_s": round(t_pre, 2), "finetune_s": round(t_ft, 2),

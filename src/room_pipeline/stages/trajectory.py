@@ -12,6 +12,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from ..anatomy.centreline import CentrelineGraph
+from ..catalog import split_key
 from ..config.compose import section
 from ..errors import ConfigError
 from ..io.atomic import write_json, write_text
@@ -21,19 +22,10 @@ from ..planning.trajectory import (TrajectoryParams, plan_path, read_start_pose,
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 
 
-def split_key(key: str) -> tuple[str, str]:
-    """DVC matrix key ``<patient>/<sequence>`` -> (patient, sequence)."""
-    if "/" not in key:
-        raise ConfigError(f"trajectory stage needs --patient PATIENT/SEQUENCE, got '{key}'")
-    patient, sequence = key.split("/", 1)
-    return patient, sequence
-
-
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
-    p = patient_paths(cfg, patient)
-    return [p.sequence_metadata(sequence) / name for name in ("trajectory.json", "timestamps.json",
-                                                               "trajectory_tum.txt")]
+    s = patient_paths(cfg, patient).seq(sequence)
+    return [s.trajectory, s.timestamps, s.trajectory_tum]
 
 
 def run(cfg: DictConfig, key: str) -> dict:
@@ -58,13 +50,13 @@ def run(cfg: DictConfig, key: str) -> dict:
         traj = plan_path(graph, targets[index], volume_sdf_fn(sdf), params, start=start)
     if start_file:  # DVC tracks the entry (params patients.<id>); the bytes it read are recorded here
         traj.start.update(file=str(start_file), sha256=hashlib.sha256(Path(start_file).read_bytes()).hexdigest())
-    out = paths.sequence_metadata(sequence)
+    out = paths.seq(sequence)
     doc = traj.to_dict()
     doc["metadata"] = metadata("trajectory", patient, cfg, ("trajectory",), sequence=sequence,
                                target_index=index)
-    write_json(out / "trajectory.json", doc)
-    write_json(out / "timestamps.json", timestamps_dict(traj))
-    write_text(out / "trajectory_tum.txt", traj.to_tum())
+    write_json(out.trajectory, doc)
+    write_json(out.timestamps, timestamps_dict(traj))
+    write_text(out.trajectory_tum, traj.to_tum())
     summary = traj.summary()
     metrics = {"frames": summary["frames"], "duration_s": round(summary["duration_s"], 3),
                "length_mm": round(summary["length_m"] * 1e3, 3),

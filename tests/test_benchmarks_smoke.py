@@ -1,0 +1,119 @@
+"""Every benchmark's smoke mode runs (benchmarks/*.py): the scripts rot when the layout changes.
+
+Each script runs as a subprocess from a scratch copy of ``benchmarks/`` whose ``src``, ``conf``,
+``data`` and ``models`` are links to this checkout's, so ``ROOT`` (``parents[1]`` of the script) is the
+scratch folder: whatever a run writes under ``benchmarks/results`` stays there and the published
+results are never overwritten.  ``../shared`` is linked beside it, so the shared real data is found
+the same way.  A script whose inputs are absent (a rendered default run in ``data/output``, Blender,
+the shared data) is skipped with the reason.  ``NO_SMOKE`` lists the scripts without a smoke mode yet
+and why; every script must be in one of the two tables.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BENCH = REPO / "benchmarks"
+#: a rendered default run (room run / dvc repro); ROOM_BENCH_RUN=DIR points the smoke runs at another one
+#: (the scratch copy's data/output links to it; pose_eval, executor_throughput and the others only read it,
+#: depth_eval writes its evaluation into it)
+RUN = Path(os.environ.get("ROOM_BENCH_RUN") or REPO / "data" / "output")
+
+
+def _has_run() -> bool:
+    return any(RUN.glob("patient_*/sequence_*/metadata/render.json"))
+
+
+def _has_bpy() -> bool:
+    try:
+        import bpy  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+NEEDS = {"run": (_has_run, f"no rendered default run in {RUN} (room run)"),
+         "bpy": (_has_bpy, "Blender's bpy is not importable"),
+         "shared": (lambda: (REPO.parent / "shared" / "data").is_dir(), "no ../shared/data")}
+
+#: script -> (smoke arguments, what it needs)
+SMOKE = {
+    "config_validation.py": (["--repeats", "1"], ()),
+    "trajectory.py": (["--max-generation", "2"], ()),
+    "phantom_vs_schmidt.py": (["--seeds", "1"], ()),
+    "anatomy_speed.py": (["--sizes", "128"], ()),
+    "noise.py": (["--speed-runs", "2", "--synth-frames", "2"], ("shared",)),
+    "raycast_renderer.py": (["--frames", "2", "--write-frames", "1", "--repeats", "1"], ()),
+    "pose_eval.py": (["--quick", "--methods", "orb_vo", "--data", str(RUN)], ("run",)),
+    "depth_eval.py": (["--quick", "--data", str(RUN)], ("run",)),
+    "executor_throughput.py": (["--quick", "--repeats", "1", "--max-wait", "0"], ("run",)),
+    "realism_speed.py": (["--inputs", str(RUN), "--frames", "1"], ("run",)),
+    "write_throughput.py": (["--quick"], ("run",)),
+    "simulation.py": (["--quick"], ("run",)),
+    "cycles_quality.py": (["--quick"], ("bpy", "run")),
+    "cycles_reference.py": (["--quick"], ("bpy", "run")),
+}
+
+#: scripts without a smoke mode (yet) -> why
+NO_SMOKE = {
+    "_synthetic.py": "a helper module, not a benchmark",
+    "anatomy_memory.py": "runs the anatomy chain on a real mask up to a stage; no smaller input option",
+    "collision_corridor.py": "no size option; owned by the collision work in progress",
+    "evaluation_budget.py": "times the evaluation stages on a full default run",
+    "medial_axis.py": "no size option below one phantom per seed",
+    "mesh_decimation.py": "no options",
+    "navigation.py": "closed-loop episodes; no size option",
+    "real_masks_chain.py": "the whole chain on every shared real mask",
+    "realism.py": "needs a full default run and the real frames; no size option",
+    "sdf_far_field.py": "a real mask at full size",
+    "sdf_methods.py": "no options",
+    "sequence_bytes.py": "measures a full rendered sequence on disk",
+    "simcol_transfer.py": "fine-tunes the depth network on the SimCol sample; no size option",
+}
+
+
+def test_every_benchmark_is_listed():
+    scripts = {p.name for p in BENCH.glob("*.py")}
+    assert not (set(SMOKE) & set(NO_SMOKE))
+    assert scripts == set(SMOKE) | set(NO_SMOKE), (
+        f"not listed: {sorted(scripts - set(SMOKE) - set(NO_SMOKE))}; gone: {sorted(set(SMOKE) | set(NO_SMOKE) - scripts)}")
+
+
+def _scratch(tmp_path: Path) -> Path:
+    root = tmp_path / "work" / "repo"
+    (root / "benchmarks").mkdir(parents=True)
+    for p in BENCH.glob("*.py"):
+        shutil.copy2(p, root / "benchmarks" / p.name)
+    for name in ("src", "conf", "models", "params.yaml", "dvc.yaml", "pyproject.toml"):
+        if (REPO / name).exists():
+            (root / name).symlink_to(REPO / name)
+    (root / "data").mkdir()
+    for p in (REPO / "data").iterdir() if (REPO / "data").is_dir() else []:
+        if p.name != "output":
+            (root / "data" / p.name).symlink_to(p)
+    if RUN.is_dir():
+        (root / "data" / "output").symlink_to(RUN.resolve())
+    if (REPO.parent / "shared").exists():
+        (tmp_path / "work" / "shared").symlink_to(REPO.parent / "shared")
+    return root
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", sorted(SMOKE))
+def test_benchmark_smoke(script, tmp_path):
+    args, needs = SMOKE[script]
+    for n in needs:
+        ok, why = NEEDS[n]
+        if not ok():
+            pytest.skip(why)
+    root = _scratch(tmp_path)
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / script), *args], cwd=root, env=env,
+                         capture_output=True, text=True, timeout=1800)
+    assert res.returncode == 0, f"{script} {' '.join(args)}: exit {res.returncode}\n{res.stderr[-3000:]}"

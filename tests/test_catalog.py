@@ -1,0 +1,102 @@
+"""The dataset catalogue (room_pipeline.catalog) and the typed pose records (room_pipeline.io.records)."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from room_pipeline import catalog
+from room_pipeline.errors import ConfigError, InputError
+from room_pipeline.io.records import POSE_KEY, pose_track, pose_track_from_doc
+from room_pipeline.io.tum import parse_tum, tum_text
+from room_pipeline.paths import PatientPaths
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "room_pipeline"
+
+
+def test_split_key_and_paths(tmp_path):
+    assert catalog.split_key("p/sequence_000") == ("p", "sequence_000")
+    assert catalog.split_key("p/a/b") == ("p", "a/b")
+    with pytest.raises(ConfigError, match="PATIENT/SEQUENCE"):
+        catalog.split_key("p")
+    pp = PatientPaths(tmp_path, "p")
+    s = pp.seq("sequence_000")
+    assert s.render_json == tmp_path / "p" / "sequence_000" / "metadata" / "render.json"
+    assert s.camera == tmp_path / "p" / "sequence_000" / "calibration" / "camera_params.json"
+    assert s.folder("normals").name == "surface_normals" and s.rgb_noisy.name == "rgb_noisy"
+    assert s.frame("depth", 7, ".exr").name == "frame_0007.exr"
+    assert pp.eval("sequence_000").pose == tmp_path / "evaluation" / "p" / "sequence_000" / "pose.json"
+    assert pp.sequence_metadata("sequence_000") == s.metadata
+    with pytest.raises(ConfigError, match="unknown modality"):
+        s.folder("thermal")
+    assert not s.is_rendered()
+
+
+def test_layout_names_are_spelled_only_in_the_catalogue():
+    """Every file and folder name the catalogue owns appears as a string literal in no other module."""
+    names = {v for k, v in vars(catalog).items() if k.isupper() and isinstance(v, str) and "." in v}
+    # folder names that are not also a modality's name or a config key (rgb_noisy is the modality's name:
+    # the literal is checked below; relative_depth names both; point_clouds is also render.storage's key)
+    names |= {v for k, v in catalog.FOLDERS.items() if v != k and v != "point_clouds"} | {"depth_model"}
+    found = []
+    for p in SRC.rglob("*.py"):
+        if p.name == "catalog.py":
+            continue
+        text = p.read_text(encoding="utf-8")
+        code = re.sub(r'""".*?"""', "", text, flags=re.S)          # docstrings may name the files
+        for n in names:
+            if f'"{n}"' in code or f"'{n}'" in code:
+                found.append(f"{p.relative_to(SRC)}: {n}")
+        if '"rgb_noisy"' in code:
+            found.append(f"{p.relative_to(SRC)}: rgb_noisy")
+    # known: the frame writer (io storage work in progress) spells two folders itself
+    known = {"stages/render.py: surface_normals", "stages/render.py: optical_flow"}
+    assert set(found) <= known, sorted(set(found) - known)
+
+
+def _doc(key, n=3, arc=True):
+    return {"frames": [{"timestamp": 0.1 * i, key: np.eye(4).tolist(), **({"arclength": 0.01 * i} if arc else {})}
+                       for i in range(n)]}
+
+
+@pytest.mark.parametrize("name", sorted(POSE_KEY))
+def test_pose_track_reads_each_pose_file(tmp_path, name):
+    p = tmp_path / name
+    p.write_text(json.dumps(_doc(POSE_KEY[name])))
+    t = pose_track(p)
+    assert len(t) == 3 and t.poses.shape == (3, 4, 4) and np.allclose(t.timestamps, [0.0, 0.1, 0.2])
+    assert t.positions.shape == (3, 3) and t.arclength is not None
+
+
+def test_pose_track_hard_cases(tmp_path):
+    empty = pose_track_from_doc({"frames": []}, "pose")
+    assert len(empty) == 0 and empty.poses.shape == (0, 4, 4) and empty.arclength is None
+    assert pose_track_from_doc(_doc("pose", arc=False), "pose").arclength is None
+    with pytest.raises(InputError, match="tip_pose"):
+        pose_track_from_doc(_doc("pose"), "tip_pose", "simulation.json")
+    bad = {"frames": [{"timestamp": 0.0, "pose": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}]}
+    with pytest.raises(InputError, match="expected 4x4"):
+        pose_track_from_doc(bad, "pose")
+    with pytest.raises(InputError, match="not a pose file"):
+        pose_track(tmp_path / "noise.json")
+    (tmp_path / "render.json").write_text("{not json")
+    with pytest.raises(InputError, match="cannot read"):
+        pose_track(tmp_path / "render.json")
+
+
+def test_tum_round_trip_and_empty():
+    rng = np.random.default_rng(0)
+    from scipy.spatial.transform import Rotation
+
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[:, :3, :3] = Rotation.random(4, random_state=1).as_matrix()
+    poses[:, :3, 3] = rng.normal(size=(4, 3))
+    ts, back = parse_tum(tum_text(np.arange(4) * 0.1, poses))
+    assert np.allclose(back, poses, atol=1e-8) and np.allclose(ts, np.arange(4) * 0.1)
+    ts, back = parse_tum("# only a comment\n")
+    assert ts.shape == (0,) and back.shape == (0, 4, 4)
+    with pytest.raises(InputError, match="8 numbers"):
+        parse_tum("0 1 2 3\n")
