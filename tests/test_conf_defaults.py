@@ -57,6 +57,8 @@ EXCEPTIONS = {
     ("DepthParams", "hf"): "the Hugging Face models are named by conf/ only (local folders, nothing downloaded)",
     ("DepthParams", "external"): "None and {} both mean no external method",
     ("TrainParams", "simcol_dir"): "conf/ points at this checkout's ../shared data; a library default cannot",
+    ("TrajectoryParams", "joint_plan"): "code None = conf's enabled: false (the joint plan off); conf carries the "
+                                        "option's settings, checked by JointPlanParams",
 }
 #: fields a conf file may leave out because another file of the same group sets them -> that file
 OTHER_FILE = {("SegmentParams", "weights_dir"): "segment/totalsegmentator.yaml",

@@ -25,7 +25,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "room_pipeline"
 
 LAYERS = [
     {"__init__", "errors", "conventions", "catalog", "progress"},
-    {"config", "io", "paths"},
+    {"config", "io", "paths", "geometry"},
     {"anatomy", "render", "robot", "execution", "dataset"},
     {"planning", "evaluate", "noise", "realism", "depth"},
     {"navigation", "export", "report"},
@@ -35,9 +35,7 @@ LAYERS = [
 LAYER = {pkg: i for i, group in enumerate(LAYERS) for pkg in group}
 
 #: module cycles still in the code (sorted module names of each strongly connected component)
-KNOWN_CYCLES = [
-    ("room_pipeline.anatomy.collision", "room_pipeline.anatomy.mesh"),   # collision <-> decimation (collision work)
-]
+KNOWN_CYCLES: list[tuple[str, str]] = []
 #: (importer, imported) module pairs that go up a layer
 KNOWN_UPWARD: set = set()
 
