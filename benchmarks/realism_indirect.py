@@ -1,0 +1,271 @@
+#!/usr/bin/env python3
+"""The ray caster's precomputed inter-reflection (render/indirect.py) against Cycles path tracing.
+
+    python benchmarks/realism_indirect.py --inputs DIR --cache /tmp/refs --check-direct   # 0 bounces vs Cycles
+    python benchmarks/realism_indirect.py --inputs DIR --cache /tmp/refs                  # quality table
+    python benchmarks/realism_indirect.py --inputs DIR --cache /tmp/refs --tiles          # 600x600 1024-spp tiles
+    python benchmarks/realism_indirect.py --inputs DIR --speed                            # CPU s per 600x600 frame
+
+Inputs: a patient folder written by ``dvc repro`` (``anatomy/lung_model.obj``, ``centreline_graph.json``,
+``sequence_000/metadata/simulation.json``); the scene is the render stage's (benchmarks/cycles_reference.py
+builds it: default conf/render, lens distortion off, views trachea / bifurcation / distal picked from the
+route).
+
+**Same mesh on both sides**: Cycles and the ray caster render the render stage's mesh itself, with the
+same area-weighted smooth vertex normals (given to Blender as custom normals) and the appearance baked at
+its vertices (the ray caster with ``per_pixel_texture`` off reads the same bake), so the score measures the
+light transport only.  The product's default RGB (per-pixel appearance) is scored too: it differs from the
+reference by its texture detail as well.
+
+References: Cycles, no adaptive sampling, no denoiser, ``--ref-bounces`` (8) bounces, shadow rays on (the
+physical light; the product's Cycles preset skips them), two halves of ``--ref-spp / 2`` samples with seeds
+1000/1001 averaged in linear radiance; ``MSE_ref = MSE(a, b) / 4`` gives PSNR* (against the noise-free
+image).  Every image goes through the same film: the view's exposure metered on the reference itself (the
+render stage's rule, :func:`room_pipeline.render.shading.auto_exposure_ev` at its percentile/target), veiling
+glare, sRGB, 8 bits.  PSNR of the 8-bit images.  CPU s = ``time.process_time`` of this process (all
+threads).  Results: benchmarks/results/realism_indirect*.{md,json}.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "src"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def psnr(mse: float) -> float:
+    return float(10 * np.log10(1.0 / mse)) if mse > 0 else float("inf")
+
+
+def lumen_normals(mesh) -> np.ndarray:
+    from room_pipeline.render.indirect import vertex_normals_into_lumen
+
+    return vertex_normals_into_lumen(mesh.vertices, mesh.faces)
+
+
+def one_view(scene, i: int, ev: float | None = None):
+    from cycles_reference import view_scene
+
+    sc = view_scene(scene, i)
+    if ev is not None:
+        sc = dataclasses.replace(sc, film=dataclasses.replace(sc.film, exposure_ev=ev, frame_ev=None))
+    return sc
+
+
+def cycles_linear(sc, normals, spp: int, bounces: int, seed: int, threads: int, shadows: bool = True,
+                  denoise: bool = False, border=None) -> tuple[np.ndarray, float]:
+    """Raw linear radiance (exposure 0) of a one-pose scene from Cycles, and its CPU seconds."""
+    from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
+
+    st = CyclesSettings(samples=spp, adaptive_threshold=0.0, denoise=denoise, seed=seed, exposure=0.0,
+                        max_bounces=bounces, threads=threads, cast_shadows=shadows)
+    with CyclesRenderer(sc, st, vertex_normals=normals) as r:
+        if border is not None:
+            set_border(r, border)
+        c0 = time.process_time()
+        img = r.render(0, ("rgb",))["rgb"].astype(np.float32)
+        return img, time.process_time() - c0
+
+
+def set_border(r, border) -> None:
+    """Cycles border render of pixel rows y0:y1, columns x0:x1 (OpenCV rows from the top), not cropped."""
+    x0, x1, y0, y1 = border
+    rr = r._bscene.render
+    w, h = rr.resolution_x, rr.resolution_y
+    rr.use_border = True
+    rr.use_crop_to_border = False
+    rr.border_min_x, rr.border_max_x = x0 / w, x1 / w
+    rr.border_min_y, rr.border_max_y = 1 - y1 / h, 1 - y0 / h      # Blender's y is up
+
+
+def key_of(sc, *parts) -> str:
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(sc.mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(sc.mesh.faces, dtype=np.int64).tobytes())
+    h.update(np.round(sc.poses[0], 12).tobytes())
+    h.update(repr((sc.material, sc.light, sc.camera, parts)).encode())
+    return h.hexdigest()[:16]
+
+
+def reference(sc, normals, name: str, args, bounces: int, spp: int, border=None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Two cached halves (linear, exposure 0) of a Cycles reference."""
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    k = key_of(sc, spp, bounces, border, "shadows")
+    halves, cpu = [], []
+    for seed in (1000, 1001):
+        p = cache / f"{name}_{k}_{seed}.npy"
+        if p.exists():
+            halves.append(np.load(p))
+            continue
+        img, c = cycles_linear(sc, normals, spp // 2, bounces, seed, args.threads, border=border)
+        np.save(str(p) + ".tmp.npy", img)
+        os.replace(str(p) + ".tmp.npy", p)
+        halves.append(img)
+        cpu.append(c)
+        print(f"  reference {name} half {seed}: {c:.0f} CPU s", flush=True)
+    return halves[0], halves[1], {"spp": spp, "bounces": bounces, "cpu_s_halves": cpu}
+
+
+def metered_ev(lin: np.ndarray, film, mask=None) -> float:
+    from room_pipeline.render.shading import auto_exposure_ev
+
+    m = np.ones(lin.shape[:2], bool) if mask is None else mask
+    return auto_exposure_ev(lin, m & (lin.sum(-1) > 0), film)
+
+
+def to8(lin, film, ev):
+    from room_pipeline.render.shading import apply_response
+
+    return apply_response(np.asarray(lin, np.float32), film, exposure_ev=ev).astype(np.float64) / 255
+
+
+def raycast_linear(sc, per_pixel: bool, indirect, threads: int, stride: int = 2, rc_cache: dict | None = None):
+    """Linear radiance (exposure 0, no vignetting) of the ray caster, its CPU s and build CPU s."""
+    from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+
+    sc0 = dataclasses.replace(sc, film=dataclasses.replace(sc.film, exposure_ev=0.0, frame_ev=None, vignetting=0.0))
+    rc = RaycastRenderer(sc0, RaycastConfig(nthreads=threads, per_pixel_texture=per_pixel, shading_stride=stride,
+                                            indirect=indirect))
+    b0 = time.process_time()
+    if indirect.bounces > 0:
+        rc.radiosity
+    build = time.process_time() - b0
+    c0 = time.process_time()
+    out = rc.render(0, ("rgb",))
+    return out["rgb_linear"], time.process_time() - c0, build
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--inputs", default=str(ROOT / "data" / "output" / "patient_000"))
+    ap.add_argument("--sequence", default="sequence_000")
+    ap.add_argument("--cache", default=str(ROOT / "benchmarks" / ".cache" / "realism_indirect"))
+    ap.add_argument("--res", type=int, default=200)
+    ap.add_argument("--ref-spp", type=int, default=256)
+    ap.add_argument("--ref-bounces", type=int, default=8)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--views", default="trachea,bifurcation,distal")
+    ap.add_argument("--check-direct", action="store_true", help="0 bounces: ray caster vs Cycles direct light")
+    ap.add_argument("--grid", default="16,64,256", help="rays per point to try")
+    ap.add_argument("--out", default="realism_indirect")
+    ap.add_argument("--speed", action="store_true", help="CPU s per frame of the default RGB with and without "
+                    "the indirect light, at --res (600 for the headline), each view")
+    args = ap.parse_args()
+    import bpy  # noqa: F401
+
+    from cycles_reference import build_scene, pick_views, render_params
+    from room_pipeline.render.indirect import IndirectConfig
+
+    rp = render_params()
+    scene, graph = build_scene(Path(args.inputs), args.sequence, rp, args.res)
+    scene.vertex_albedo()
+    views = pick_views(scene, graph)
+    names = [v for v in args.views.split(",") if v]
+    normals = lumen_normals(scene.mesh)
+    film = scene.film
+    rows = []
+    if args.speed:
+        speed(scene, views, names, args)
+        return
+    for n in names:
+        i = views[n]
+        sc = one_view(scene, i)
+        bounces = 0 if args.check_direct else args.ref_bounces
+        a, b, meta = reference(sc, normals, n, args, bounces, args.ref_spp)
+        ref = 0.5 * (a + b)
+        ev = metered_ev(ref, film)
+        ref8 = to8(ref, film, ev)
+        mse_ref = float(np.mean((to8(a, film, ev) - to8(b, film, ev)) ** 2)) / 4
+        print(f"{n} (pose {i}) EV {ev:+.3f}: reference's own PSNR {psnr(mse_ref):.1f} dB", flush=True)
+
+        def score(label, lin, cpu, **kw):
+            x = to8(lin, film, ev)
+            mse = float(np.mean((x - ref8) ** 2))
+            ratio = float(np.sum(lin) / max(np.sum(ref), 1e-30))
+            row = {"view": n, "pose": i, "method": label, "cpu_s": cpu, "psnr_db": psnr(mse),
+                   "psnr_star_db": psnr(mse - mse_ref) if mse > mse_ref else None, "energy_ratio": ratio, **kw}
+            rows.append(row)
+            print(f"  {label:50s} {cpu:6.2f} CPU s  PSNR {row['psnr_db']:6.2f}  PSNR* "
+                  f"{row['psnr_star_db'] or float('nan'):6.2f}  sum ratio {ratio:.4f}", flush=True)
+
+        if args.check_direct:
+            lin, cpu, _ = raycast_linear(sc, False, IndirectConfig(bounces=0), args.threads)
+            score("ray caster, direct only, vertex albedo (same mesh)", lin, cpu)
+            continue
+        lin, cpu, _ = raycast_linear(sc, False, IndirectConfig(bounces=0), args.threads)
+        score("ray caster, direct only", lin, cpu)
+        for k in (int(x) for x in args.grid.split(",")):
+            for nb in (args.ref_bounces,):
+                cfg = IndirectConfig(bounces=nb, rays_per_point=k)
+                lin, cpu, build = raycast_linear(sc, False, cfg, args.threads)
+                score(f"ray caster + indirect K {k}, {nb} bounces (vertex albedo)", lin, cpu, build_cpu_s=build,
+                      rays_per_point=k, bounces=nb)
+    doc = {"args": vars(args), "views": views, "rows": rows, "load_avg": os.getloadavg()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{args.out}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+
+
+def speed(scene, views, names, args) -> None:
+    """CPU s of the render stage's RGB per frame (cast, normals, per-pixel appearance, shading, indirect, film;
+    exposure fixed: the meter's cost is measured separately) at --res, the radiosity built beforehand."""
+    from room_pipeline.render.exposure import raw_exposures
+    from room_pipeline.render.indirect import IndirectConfig
+    from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+    from room_pipeline.stages.render import exposure_params
+
+    rows = []
+    grid = [(0, 64)] + [(8, int(k)) for k in args.grid.split(",")]
+    for n in names:
+        i = views[n]
+        sc = one_view(scene, i, 0.0)
+        for nb, k in grid:
+            cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k))
+            rc = RaycastRenderer(sc, cfg)
+            b0 = time.process_time()
+            if nb:
+                rc.radiosity
+            build = time.process_time() - b0
+            rc.render(0, ("rgb", "depth"))
+            cpu, wall = [], []
+            for _ in range(3):
+                rc._cache.clear()
+                for key in list(rc.timings):
+                    rc.timings[key] = 0.0
+                c0, w0 = time.process_time(), time.perf_counter()
+                rc.render(0, ("rgb",))
+                cpu.append(time.process_time() - c0)
+                wall.append(time.perf_counter() - w0)
+            m0 = time.process_time()
+            raw_exposures(sc, exposure_params(render_params_default()), args.threads,
+                          IndirectConfig(bounces=nb, rays_per_point=k) if nb else None)
+            meter = time.process_time() - m0
+            rows.append({"view": n, "bounces": nb, "rays_per_point": k, "cpu_s": float(np.median(cpu)),
+                         "wall_s": float(np.median(wall)), "indirect_wall_s": float(rc.timings["indirect"]),
+                         "meter_cpu_s_incl_build": meter, "build_cpu_s": build, "res": args.res,
+                         "n_vertices": int(sc.mesh.n_vertices)})
+            print(json.dumps(rows[-1]), flush=True)
+    doc = {"args": vars(args), "rows": rows, "load_avg": os.getloadavg(), "nproc": os.cpu_count()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{args.out}_speed.json").write_text(json.dumps(doc, indent=1) + "\n")
+
+
+def render_params_default():
+    from cycles_reference import render_params
+
+    return render_params()
+
+
+if __name__ == "__main__":
+    main()
