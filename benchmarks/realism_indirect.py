@@ -160,6 +160,9 @@ def main() -> None:
     ap.add_argument("--check-direct", action="store_true", help="0 bounces: ray caster vs Cycles direct light")
     ap.add_argument("--grid", default="16,64,256", help="rays per point to try")
     ap.add_argument("--out", default="realism_indirect")
+    ap.add_argument("--tiles", action="store_true", help="score full-resolution tiles (Cycles border render) of "
+                    "--res frames against a --ref-spp reference (the headline: --res 600 --ref-spp 1024)")
+    ap.add_argument("--tile", type=int, default=64, help="tile side, px")
     ap.add_argument("--speed", action="store_true", help="CPU s per frame of the default RGB with and without "
                     "the indirect light, at --res (600 for the headline), each view")
     args = ap.parse_args()
@@ -178,6 +181,9 @@ def main() -> None:
     rows = []
     if args.speed:
         speed(scene, views, names, args)
+        return
+    if args.tiles:
+        tiles(scene, views, names, normals, args)
         return
     for n in names:
         i = views[n]
@@ -212,9 +218,58 @@ def main() -> None:
                 lin, cpu, build = raycast_linear(sc, False, cfg, args.threads)
                 score(f"ray caster + indirect K {k}, {nb} bounces (vertex albedo)", lin, cpu, build_cpu_s=build,
                       rays_per_point=k, bounces=nb)
+        cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64)
+        lin, cpu, build = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride)
+        score("the product: + indirect K 64, per-pixel appearance", lin, cpu, build_cpu_s=build, rays_per_point=64,
+              bounces=args.ref_bounces, per_pixel_texture=True)
     doc = {"args": vars(args), "views": views, "rows": rows, "load_avg": os.getloadavg()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{args.out}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    write_md(args.out)
+
+
+def tile_boxes(res: int, t: int) -> list[tuple[int, int, int, int]]:
+    """Two tiles (x0, x1, y0, y1) of a res x res frame: the centre (the far lumen) and half-way to the
+    upper-left corner (the near wall), fixed, not chosen by looking at images."""
+    c = res // 2 - t // 2
+    q = res // 4 - t // 2
+    return [(c, c + t, c, c + t), (q, q + t, q, q + t)]
+
+
+def tiles(scene, views, names, normals, args) -> None:
+    """PSNR of the product's RGB (per-pixel appearance and vertex albedo, K 64, ``--ref-bounces``) on
+    full-resolution tiles against a Cycles border render of ``--ref-spp`` samples (two halves)."""
+    from room_pipeline.render.indirect import IndirectConfig
+
+    rp = render_params_default()
+    film = scene.film
+    rows = []
+    for n in names:
+        i = views[n]
+        sc = one_view(scene, i)
+        cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64)
+        lin_v, cpu_v, _ = raycast_linear(sc, False, cfg, args.threads)
+        lin_p, cpu_p, _ = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride)
+        ev = metered_ev(lin_p, film)                    # the frame's exposure, metered on the product's frame
+        for box in tile_boxes(args.res, args.tile):
+            x0, x1, y0, y1 = box
+            a, b, meta = reference(sc, normals, f"{n}_tile{x0}_{y0}", args, args.ref_bounces, args.ref_spp,
+                                   border=box)
+            a, b = a[y0:y1, x0:x1], b[y0:y1, x0:x1]
+            ref8 = to8(0.5 * (a + b), film, ev)
+            mse_ref = float(np.mean((to8(a, film, ev) - to8(b, film, ev)) ** 2)) / 4
+            for label, lin in (("ray caster + indirect, vertex albedo (same texture as Cycles)", lin_v),
+                               ("the product: ray caster + indirect, per-pixel appearance", lin_p)):
+                x = to8(lin[y0:y1, x0:x1], film, ev)
+                mse = float(np.mean((x - ref8) ** 2))
+                rows.append({"view": n, "pose": i, "tile": box, "method": label, "psnr_db": psnr(mse),
+                             "psnr_star_db": psnr(mse - mse_ref) if mse > mse_ref else None,
+                             "ref_psnr_db": psnr(mse_ref), "exposure_ev": ev, "ref": meta})
+                print(json.dumps({k: v for k, v in rows[-1].items() if k != "ref"}), flush=True)
+    doc = {"args": vars(args), "views": views, "rows": rows, "load_avg": os.getloadavg()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{args.out}_tiles.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    write_md(args.out)
 
 
 def speed(scene, views, names, args) -> None:
@@ -259,6 +314,7 @@ def speed(scene, views, names, args) -> None:
     doc = {"args": vars(args), "rows": rows, "load_avg": os.getloadavg(), "nproc": os.cpu_count()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{args.out}_speed.json").write_text(json.dumps(doc, indent=1) + "\n")
+    write_md(args.out)
 
 
 def render_params_default():
@@ -267,5 +323,67 @@ def render_params_default():
     return render_params()
 
 
+
+def write_md(out: str = "realism_indirect") -> None:
+    """benchmarks/results/<out>.md from the quality, tiles and speed JSONs that exist."""
+    L = ["# Ray caster + precomputed inter-reflection (render/indirect.py) against Cycles path tracing", "",
+         "Same mesh on both sides (the render stage's mesh, its area-weighted smooth normals, the appearance baked "
+         "at its vertices) unless the row says 'per-pixel appearance' (the product's texture, which Cycles "
+         "cannot evaluate per pixel). References: Cycles, no denoiser, no adaptive sampling, 8 bounces, shadow "
+         "rays on; PSNR of 8-bit sRGB frames through the same film (veiling glare, the view's metered "
+         "exposure); PSNR* removes the reference's own noise (MSE(a, b) / 4 of its two halves). "
+         "Patient: the default phantom patient_000, sequence_000; views picked from the route.", ""]
+    q = RESULTS / f"{out}.json"
+    if q.exists():
+        d = json.loads(q.read_text())
+        a = d["args"]
+        L += [f"## Whole frames, {a['res']}x{a['res']}, {a['ref_spp']}-spp reference", "",
+              f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {a['res']} --ref-spp "
+              f"{a['ref_spp']} --grid {a['grid']}` (load average {d['load_avg'][0]:.1f}; CPU s of the RGB at "
+              f"this resolution, build excluded).", "",
+              "| view | method | CPU s | PSNR dB | PSNR* dB | sum(ours)/sum(ref) |", "|---|---|---|---|---|---|"]
+        for r in d["rows"]:
+            ps = "" if r["psnr_star_db"] is None else f"{r['psnr_star_db']:.2f}"
+            L.append(f"| {r['view']} | {r['method']} | {r['cpu_s']:.2f} | {r['psnr_db']:.2f} | {ps} | "
+                     f"{r['energy_ratio']:.4f} |")
+        L.append("")
+    t = RESULTS / f"{out}_tiles.json"
+    if t.exists():
+        d = json.loads(t.read_text())
+        a = d["args"]
+        L += [f"## Full-resolution tiles, {a['res']}x{a['res']} frames, {a['ref_spp']}-spp reference", "",
+              f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {a['res']} --ref-spp "
+              f"{a['ref_spp']} --tiles --tile {a['tile']}`: Cycles border renders of {a['tile']}x{a['tile']} px "
+              "tiles (the centre, and half-way to the upper-left corner) of the full frame; the exposure metered "
+              f"on the product's full frame (load average {d['load_avg'][0]:.1f}).", "",
+              "| view | tile x0,x1,y0,y1 | method | PSNR dB | PSNR* dB | reference's own PSNR dB |",
+              "|---|---|---|---|---|---|"]
+        for r in d["rows"]:
+            ps = "" if r["psnr_star_db"] is None else f"{r['psnr_star_db']:.2f}"
+            L.append(f"| {r['view']} | {','.join(str(x) for x in r['tile'])} | {r['method']} | {r['psnr_db']:.2f} | "
+                     f"{ps} | {r['ref_psnr_db']:.1f} |")
+        L.append("")
+    s = RESULTS / f"{out}_speed.json"
+    if s.exists():
+        d = json.loads(s.read_text())
+        a = d["args"]
+        L += [f"## Cost per {a['res']}x{a['res']} frame ({a['threads']} threads)", "",
+              f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {a['res']} --speed --grid "
+              f"{a['grid']}`: the render stage's RGB (cast, normals, per-pixel appearance, shading, indirect, film; "
+              "median of 3, the precomputation excluded and listed), load average "
+              f"{d['load_avg'][0]:.1f} on {d['nproc']} cores (wall is inflated by the other users).", "",
+              "| view | bounces | K rays/vertex | CPU s/frame | wall s/frame | precompute CPU s (once per mesh) |",
+              "|---|---|---|---|---|---|"]
+        for r in d["rows"]:
+            L.append(f"| {r['view']} | {r['bounces']} | {r['rays_per_point'] if r['bounces'] else '-'} | "
+                     f"{r['cpu_s']:.3f} | {r['wall_s']:.3f} | {r['build_cpu_s']:.2f} |")
+        L.append("")
+    (RESULTS / f"{out}.md").write_text("\n".join(L) + "\n")
+    print("\n".join(L))
+
+
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:] == ["--md"]:
+        write_md()
+    else:
+        main()

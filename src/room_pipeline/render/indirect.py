@@ -59,7 +59,8 @@ class IndirectConfig:
     bounces: diffuse bounces after the first hit (0 = off; Cycles' ``max_bounces``);
     rays_per_point: gather rays per mesh vertex (K); seed: their sampling seed;
     shadows: shadow rays for the direct light at the points; eps_m: ray start offset off the surface;
-    glossy: the wet layer's specular reflection of the bounced light (module docstring).
+    glossy: the wet layer's specular reflection of the bounced light (module docstring), seen at the pixels
+    by one mirror ray every ``glossy_stride`` pixels.
     """
 
     bounces: int = 0
@@ -68,9 +69,10 @@ class IndirectConfig:
     shadows: bool = True
     eps_m: float = 1e-5
     glossy: bool = True
+    glossy_stride: int = 2
 
     def __post_init__(self) -> None:
-        if self.bounces < 0 or self.rays_per_point < 1 or not self.eps_m > 0:
+        if self.bounces < 0 or self.rays_per_point < 1 or not self.eps_m > 0 or self.glossy_stride < 1:
             raise ValueError(f"indirect: bounces >= 0, rays_per_point >= 1 and eps_m > 0 required, got "
                              f"{self.bounces}, {self.rays_per_point}, {self.eps_m}")
 
@@ -222,7 +224,30 @@ class Radiosity:
             e = ed + self.G @ (self.rho * e)
         return e - ed
 
-    def vertex_irradiance(self, pose: np.ndarray, light: TipLight) -> np.ndarray:
-        """Indirect irradiance (V, 3) at the vertices for a camera at ``pose``."""
-        return self.indirect_irradiance(self.direct_irradiance(pose, light))
+    def vertex_irradiance(self, pose: np.ndarray, light: TipLight) -> tuple[np.ndarray, np.ndarray]:
+        """Direct (V,) and indirect (V, 3) irradiance at the vertices for a camera at ``pose``."""
+        ed = self.direct_irradiance(pose, light)
+        return ed, self.indirect_irradiance(ed)
+
+    def mirror_radiance(self, origins: np.ndarray, dirs: np.ndarray, e_total: np.ndarray) -> np.ndarray:
+        """(N, 3) float32 radiance arriving along world rays (``origins`` (N, 3) metres, ``dirs`` (N, 3)): the
+        outgoing radiance ``rho E / pi`` of the wall each ray hits (``e_total`` (V, 3): the vertices'
+        direct + indirect irradiance, interpolated barycentrically); 0 where a ray escapes or hits a back face."""
+        out = np.zeros((len(origins), 3), dtype=np.float32)
+        if len(origins) == 0:
+            return out
+        d = np.asarray(dirs, dtype=np.float64)
+        rays = np.concatenate([np.asarray(origins, dtype=np.float64) - self.origin, d], axis=1).astype(np.float32)
+        res = self.rc.cast_rays(self._o3d.core.Tensor(rays), nthreads=self.nthreads)
+        hit = np.isfinite(res["t_hit"].numpy())
+        hit &= np.einsum("ij,ij->i", res["primitive_normals"].numpy(), d.astype(np.float32)) > 0
+        idx = np.flatnonzero(hit)
+        if idx.size == 0:
+            return out
+        tri = self.faces[res["primitive_ids"].numpy()[idx].astype(np.int64)]
+        uv = res["primitive_uvs"].numpy()[idx]
+        lv = np.asarray(e_total, dtype=np.float32) * self.rho * np.float32(1 / math.pi)
+        w0 = (1 - uv[:, 0] - uv[:, 1])[:, None]
+        out[idx] = w0 * lv[tri[:, 0]] + uv[:, :1] * lv[tri[:, 1]] + uv[:, 1:] * lv[tri[:, 2]]
+        return out
 

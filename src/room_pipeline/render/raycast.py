@@ -454,7 +454,7 @@ class RaycastRenderer:
         if mat.interreflection > 0:
             lin += interreflection(lin, alb, c.depth, c.hit, mat)
         if self.config.indirect.bounces > 0:
-            lin += self.indirect_radiance(i, c, alb, -n_dot_ray * self._inv_ray_len)
+            lin += self.indirect_radiance(i, c, alb, -n_dot_ray * self._inv_ray_len, normals)
         return lin
 
     @property
@@ -468,22 +468,46 @@ class RaycastRenderer:
             self.timings["indirect_build"] += time.perf_counter() - t0
         return self._radiosity
 
-    def indirect_radiance(self, i: int, c: Cast, albedo: np.ndarray | None, cos_v: np.ndarray) -> np.ndarray:
-        """(H, W, 3) float32 radiance of the inter-reflected light at the hits of frame ``i`` (0 elsewhere):
-        ``((1 - F0) albedo + A(cos_v)) E_ind / pi`` (``cos_v``: (H, W) cosine between normal and view)."""
+    def indirect_radiance(self, i: int, c: Cast, albedo: np.ndarray | None, cos_v: np.ndarray,
+                          normals: np.ndarray) -> np.ndarray:
+        """(H, W, 3) float32 radiance of the inter-reflected light at the hits of frame ``i`` (0 elsewhere).
+
+        Diffuse: ``(1 - A(n.v)) albedo E_ind / pi`` with the vertices' indirect irradiance interpolated at the
+        hit; glossy (``indirect.glossy``): ``A(n.v)`` times the radiance of the wall in the mirror direction
+        (one reflection ray every ``indirect.glossy_stride`` pixels, bilinear).  ``cos_v`` (H, W): cosine
+        between normal and view; ``normals`` (H, W, 3): camera-frame unit normals.
+        """
+        import cv2
+
         rad = self.radiosity
         t0 = time.perf_counter()
-        e = rad.vertex_irradiance(self.scene.poses[i], self.scene.light)
+        pose = self.scene.poses[i]
+        ed, e = rad.vertex_irradiance(pose, self.scene.light)
         f = self.scene.mesh.faces
         tab = np.zeros((9, len(f) + 1), dtype=np.float32)
         tab[:, :-1] = e[f].reshape(-1, 9).T
         out = self._interp(tab, c, 3).reshape(c.depth.shape + (3,))
         a = specular_albedo_at(cos_v, self.scene.material)[..., None]          # layering: diffuse 1 - A(n.v)
-        refl = (np.asarray(self.scene.material.base_color, dtype=np.float32) if albedo is None else albedo) * (1 - a)
-        if self.config.indirect.glossy:
-            refl = refl + a
-        out *= refl
+        out *= (np.asarray(self.scene.material.base_color, dtype=np.float32) if albedo is None else albedo) * (1 - a)
         out *= np.float32(1 / np.pi)
+        cfg = self.config.indirect
+        if cfg.glossy:
+            s = cfg.glossy_stride
+            h, w = c.depth.shape
+            sub = c.hit[::s, ::s]
+            gh, gw = sub.shape
+            R = pose[:3, :3]
+            nrm = normals[::s, ::s][sub].astype(np.float64)
+            d = (self.rays[::s, ::s][sub]) * self._inv_ray_len[::s, ::s][sub][:, None]
+            r = d - 2 * np.einsum("ij,ij->i", d, nrm)[:, None] * nrm                 # mirror direction, camera frame
+            p = self.camera_points(c)[::s, ::s][sub].astype(np.float64)
+            org = (p + cfg.eps_m * nrm) @ R.T + pose[:3, 3]
+            lm = rad.mirror_radiance(org, r @ R.T, e + ed[:, None])
+            coarse = np.zeros((gh, gw, 3), dtype=np.float32)
+            coarse[sub] = lm
+            if s > 1:
+                coarse = cv2.resize(coarse, (gw * s, gh * s), interpolation=cv2.INTER_LINEAR)[:h, :w]
+            out += a * coarse
         out[~c.hit] = 0.0
         self.timings["indirect"] += time.perf_counter() - t0
         return out

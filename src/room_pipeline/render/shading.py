@@ -14,7 +14,7 @@ Light
     shadow rays.
 
 BRDF (dielectric Principled BSDF, metallic 0, no transmission / clearcoat / sheen)
-    ``f = (1 - F) base_color / pi  +  D G F / (4 (n.l) (n.v))`` (``base_color``
+    ``f = (1 - A(n.v)) base_color / pi  +  D G F / (4 (n.l) (n.v))`` (``base_color``
     replaced per pixel by a texture's albedo when one is given), with
     GGX distribution ``D = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2)``,
     ``a = roughness^2`` (Blender's remapping), Smith-GGX masking-shadowing in
@@ -22,6 +22,11 @@ BRDF (dielectric Principled BSDF, metallic 0, no transmission / clearcoat / shee
     ``k = a / 2``, and Schlick's Fresnel ``F = F0 + (1 - F0) (1 - v.h)^5`` with
     ``F0 = 0.08 * specular`` (Principled 'Specular' 0.5 -> F0 = 0.04, IOR 1.5).
     The specular lobe is white (specular tint 0): the wet-mucosa highlights.
+    ``A(n.v)`` is the lobe's directional albedo (:func:`specular_albedo`, dielectric Fresnel): Blender's
+    Principled BSDF (4.0+) scales the diffuse base under the specular layer by it, which darkens walls
+    seen at grazing angles; with ``1 - F`` instead, the direct light of the default scene was 4-14 %
+    brighter than Cycles' at the far, grazing walls (0-bounce check,
+    ``python benchmarks/realism_indirect.py --check-direct``).
 
 Camera response
     Linear pixel value = outgoing radiance ``f E`` times ``2**exposure_ev``,
@@ -29,7 +34,8 @@ Camera response
     view transform) and rounded to 8 bits.
 
 What it leaves out (so Cycles images differ): indirect light
-(inter-reflections brighten the far, dimly lit parts of a tube), subsurface
+(inter-reflections brighten the far, dimly lit parts of a tube; the ray caster adds them with
+:mod:`room_pipeline.render.indirect` when ``RaycastConfig.indirect.bounces`` > 0), subsurface
 scattering (softens and reddens), the light's finite radius (``radius_m``:
 softer, wider highlights; treated as a point here), Blender 4's energy
 compensation of the multiscatter GGX and its layering of specular over
