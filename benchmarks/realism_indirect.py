@@ -325,6 +325,7 @@ def render_params_default():
 
 
 def write_md(out: str = "realism_indirect") -> None:
+    out = out.removesuffix("_direct")
     """benchmarks/results/<out>.md from the quality, tiles and speed JSONs that exist."""
     L = ["# Ray caster + precomputed inter-reflection (render/indirect.py) against Cycles path tracing", "",
          "Same mesh on both sides (the render stage's mesh, its area-weighted smooth normals, the appearance baked "
@@ -333,14 +334,17 @@ def write_md(out: str = "realism_indirect") -> None:
          "rays on; PSNR of 8-bit sRGB frames through the same film (veiling glare, the view's metered "
          "exposure); PSNR* removes the reference's own noise (MSE(a, b) / 4 of its two halves). "
          "Patient: the default phantom patient_000, sequence_000; views picked from the route.", ""]
-    q = RESULTS / f"{out}.json"
-    if q.exists():
+    for q in (RESULTS / f"{out}_direct.json", RESULTS / f"{out}.json"):
+        if not q.exists():
+            continue
         d = json.loads(q.read_text())
         a = d["args"]
-        L += [f"## Whole frames, {a['res']}x{a['res']}, {a['ref_spp']}-spp reference", "",
+        direct = a.get("check_direct")
+        L += [f"## {'Direct light only (0 bounces on both sides)' if direct else 'Whole frames'}, "
+              f"{a['res']}x{a['res']}, {a['ref_spp']}-spp reference", "",
               f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {a['res']} --ref-spp "
-              f"{a['ref_spp']} --grid {a['grid']}` (load average {d['load_avg'][0]:.1f}; CPU s of the RGB at "
-              f"this resolution, build excluded).", "",
+              f"{a['ref_spp']}{' --check-direct' if direct else ' --grid ' + a['grid']}` (load average "
+              f"{d['load_avg'][0]:.1f}; CPU s of the RGB at this resolution, build excluded).", "",
               "| view | method | CPU s | PSNR dB | PSNR* dB | sum(ours)/sum(ref) |", "|---|---|---|---|---|---|"]
         for r in d["rows"]:
             ps = "" if r["psnr_star_db"] is None else f"{r['psnr_star_db']:.2f}"

@@ -162,3 +162,20 @@ def test_shadowed_points_get_no_direct_light():
     far = np.flatnonzero((np.abs(v[:, 2] - 10 * MM) < 1e-9) & (np.abs(v[:, 0]) < 1 * MM) & (np.abs(v[:, 1]) < 1 * MM))
     assert far.size and np.all(e_on[far] == 0) and np.all(e_off[far] > 0)
     assert m2.n_faces == len(f)
+
+
+@pytest.mark.parametrize("bad", [{"indirect_bounces": -1}, {"indirect_rays_per_point": 0}])
+def test_bad_indirect_config_is_refused(bad):
+    from room_pipeline.errors import ConfigError
+    from room_pipeline.stages.render import RenderParams
+
+    with pytest.raises(ConfigError, match="indirect"):
+        RenderParams.from_dict(bad)
+
+
+def test_render_config_reaches_the_ray_caster_and_the_meter():
+    from room_pipeline.stages.render import RenderParams, indirect_config, raycast_config
+
+    p = RenderParams.from_dict({"indirect_bounces": 3, "indirect_rays_per_point": 9, "indirect_seed": 4})
+    assert indirect_config(p) == IndirectConfig(bounces=3, rays_per_point=9, seed=4)
+    assert raycast_config(p).indirect.bounces == 3
