@@ -179,3 +179,29 @@ def test_render_config_reaches_the_ray_caster_and_the_meter():
     p = RenderParams.from_dict({"indirect_bounces": 3, "indirect_rays_per_point": 9, "indirect_seed": 4})
     assert indirect_config(p) == IndirectConfig(bounces=3, rays_per_point=9, seed=4)
     assert raycast_config(p).indirect.bounces == 3
+
+
+def test_agrees_with_cycles_path_tracing_in_a_closed_sphere():
+    """8 diffuse + glossy bounces inside a sphere lit from near its centre, on the same mesh and normals as
+    Cycles (8 bounces, shadow rays, 64 spp): a known gap, measured, not hidden.  Direct light only (0
+    bounces) the mean radiance agrees within 3 %; with 1 bounce the ray caster is 2.8-3.8 % brighter, with
+    8 bounces 5.8-6.4 % (in the airway views of benchmarks/results/realism_indirect.md: -2 to +2 %).  The
+    cause is not found yet; this guards it from growing."""
+    pytest.importorskip("bpy")
+    from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
+
+    mesh = sphere(10 * MM, resolution=30)
+    pose = look_at(np.array([0.0, 0.0, -2 * MM]), np.array([0.0, 0.3, 1.0]))
+    light = TipLight(power_w=0.01, offset_m=(0.0, -1.1 * MM, 0.0), radius_m=0.1 * MM)
+    cam = CameraIntrinsics.from_fov(48, 48, 90.0)
+    sc = Scene(mesh, cam, np.asarray([pose]), np.array([0.0]), light=light,
+               material=TissueMaterial(base_color=(0.7, 0.4, 0.3)), film=Film(exposure_ev=0.0, veiling_glare=0.0))
+    nb = 8
+    rr = RaycastRenderer(sc, RaycastConfig(indirect=IndirectConfig(bounces=nb, rays_per_point=64), nthreads=1))
+    ours = rr.render(0, ("rgb",))["rgb_linear"]
+    st = CyclesSettings(samples=64, adaptive_threshold=0.0, denoise=False, exposure=0.0, max_bounces=nb,
+                        cast_shadows=True, threads=1)
+    with CyclesRenderer(sc, st, vertex_normals=vertex_normals_into_lumen(mesh.vertices, mesh.faces)) as r:
+        ref = r.render(0, ("rgb",))["rgb"]
+    ratio = ours.reshape(-1, 3).mean(axis=0) / ref.reshape(-1, 3).mean(axis=0)
+    assert np.all(np.abs(ratio - 1) < 0.08), ratio
