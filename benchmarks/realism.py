@@ -134,6 +134,9 @@ def main() -> None:
     ap.add_argument("--real", default=str(REAL))
     ap.add_argument("--stride", type=int, default=10)
     ap.add_argument("--fit", action="store_true")
+    ap.add_argument("--fit-damping", type=float, default=1.0,
+                    help="exponent on each fit step's colour ratio (< 1 damps it: the inter-reflected light makes the "
+                         "colour respond more than linearly to the albedo)")
     ap.add_argument("--sweep", action="store_true")
     ap.add_argument("--no-noise-psd", action="store_true")
     ap.add_argument("--clipping", action="store_true",
@@ -173,14 +176,14 @@ def main() -> None:
             print(json.dumps(steps[-1]), flush=True)
             lr, ls = lab_to_linear(real_lab), lab_to_linear(s["synth_lab"])
             ratio = (lr / ls) / (float(LUMINANCE @ lr) / float(LUMINANCE @ ls))
-            base = base * ratio
+            base = base * ratio ** a.fit_damping
             base = base / max(1.0, base.max() / 0.95)
             target = float(np.clip(target * float(LUMINANCE @ lr) / float(LUMINANCE @ ls), 0.05, 0.95))
         res = {"fit_on": [p.name for p in sets["fit"]], "steps": steps,
                "fitted": {"base_color": base.round(3).tolist(), "auto_exposure_target": round(target, 3)}, "env": env}
         (RESULTS / "realism_fit.json").write_text(json.dumps(res, indent=1))
         md = ["# Appearance fit to the real frames (first half of BREA-Depth, all together)", "",
-              f"`python benchmarks/realism.py --fit {' '.join(a.overrides)}` (every {a.stride}th pose of "
+              f"`python benchmarks/realism.py --fit --fit-damping {a.fit_damping} --stride {a.stride} {' '.join(a.overrides)}` (every {a.stride}th pose of "
               f"patient_000/sequence_000). Each row: the parameters rendered and their scores vs the fit frames.", "",
               "| step | base_color | target | synth Lab | real Lab | dE76 | L* EMD | clipped mean / max |", "|---|---|---|---|---|---|---|---|"]
         for s in steps:

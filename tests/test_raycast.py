@@ -13,7 +13,7 @@ from room_pipeline.render.camera import CameraIntrinsics, look_at
 from room_pipeline.render.raycast import (MODALITIES, RaycastConfig, RaycastRenderer, decode_relative_depth16,
                                           relative_depth16, write_point_cloud)
 from room_pipeline.render.scene import Film, Scene, TipLight, TissueMaterial
-from room_pipeline.render.shading import linear_to_srgb8, shade_coaxial, shade_linear, srgb8_exact
+from room_pipeline.render.shading import linear_to_srgb8, shade_coaxial, shade_linear, specular_albedo, srgb8_exact
 
 MM = 1e-3
 CAM = CameraIntrinsics.from_fov(120, 120, 85.0)
@@ -327,7 +327,9 @@ def test_shading_model():
     f0 = 0.08 * mat.specular
     alpha = mat.roughness ** 2
     spec = 1 / (math.pi * alpha ** 2) * f0 / 4               # D(1) G(1,1)=1 F0 / (4 * 1 * 1)
-    assert L[0] == pytest.approx((1 - f0) * np.array(mat.base_color) / math.pi * E + spec * E, rel=1e-4)
+    a1 = float(specular_albedo(np.array(1.0), mat.roughness, mat.specular))   # diffuse under the layer: 1 - A(n.v)
+    assert a1 == pytest.approx(f0, abs=2e-3)
+    assert L[0] == pytest.approx((1 - a1) * np.array(mat.base_color) / math.pi * E + spec * E, rel=1e-4)
     # the specular lobe makes normal incidence much brighter than oblique (wet highlight), diffuse alone would be cos
     Lo = shade_coaxial(np.array([1.0, 0.5]), np.full(2, z[0] ** 2), None, mat, light)
     assert Lo[0, 1] / Lo[1, 1] > 4

@@ -76,15 +76,22 @@ def meter_camera(cam: CameraIntrinsics, scale: float) -> CameraIntrinsics:
                                cx=(cam.cx + 0.5) * sx - 0.5, cy=(cam.cy + 0.5) * sy - 0.5)
 
 
-def raw_exposures(scene: Scene, p: ExposureParams, nthreads: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame unsmoothed exposures ``e_i`` and highlight limits (float64, EV) from a low-resolution meter pass."""
+def raw_exposures(scene: Scene, p: ExposureParams, nthreads: int = 0, indirect=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame unsmoothed exposures ``e_i`` and highlight limits (float64, EV) from a low-resolution meter pass.
+
+    ``indirect``: the ray caster's inter-reflection (:class:`~room_pipeline.render.indirect.IndirectConfig`),
+    which the meter then sees too (on the mean albedo); None: direct light only.
+    """
     from .raycast import RaycastConfig, RaycastRenderer
 
     mat = dataclasses.replace(scene.material, texture=None)
     film = dataclasses.replace(scene.film, exposure_ev=0.0, frame_ev=None)
     meter = Scene(scene.mesh, meter_camera(scene.camera, p.meter_scale), scene.poses, scene.timestamps,
                   material=mat, light=scene.light, film=film)
-    r = RaycastRenderer(meter, RaycastConfig(nthreads=nthreads, per_pixel_texture=False))
+    cfg = RaycastConfig(nthreads=nthreads, per_pixel_texture=False)
+    if indirect is not None:
+        cfg = dataclasses.replace(cfg, indirect=indirect)
+    r = RaycastRenderer(meter, cfg)
     out = np.zeros(len(scene.poses))
     limit = np.full(len(scene.poses), np.inf)
     for i in range(len(scene.poses)):
@@ -122,9 +129,9 @@ def smooth_exposures(raw: np.ndarray, timestamps: np.ndarray, p: ExposureParams,
     return np.round(np.clip(out, p.min_ev, p.max_ev), 3)
 
 
-def exposure_track(scene: Scene, p: ExposureParams, nthreads: int = 0) -> tuple[float, ...]:
+def exposure_track(scene: Scene, p: ExposureParams, nthreads: int = 0, indirect=None) -> tuple[float, ...]:
     """The per-frame exposures of a sequence (EV, one per pose): meter, smooth, clamp."""
     if len(scene.poses) == 0:
         return ()
-    raw, limit = raw_exposures(scene, p, nthreads)
+    raw, limit = raw_exposures(scene, p, nthreads, indirect)
     return tuple(float(x) for x in smooth_exposures(raw, scene.timestamps, p, limit))

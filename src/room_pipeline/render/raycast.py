@@ -68,9 +68,10 @@ import numpy as np
 from ..conventions import metadata_block
 from ..io.ply import write_ply
 from . import flow as flowmod
+from .indirect import IndirectConfig, Radiosity
 from .scene import Scene
 from .shading import (VIEW_TRANSFORMS, apply_response, auto_exposure_ev, interreflection, shade_coaxial,
-                      shade_linear)
+                      shade_linear, specular_albedo_at)
 
 MODALITIES = frozenset({"rgb", "depth", "relative_depth", "normals", "flow", "point_cloud", "segmentation",
                         "world_points"})
@@ -97,6 +98,8 @@ class RaycastConfig:
         ``shading_stride`` pixels and bilinearly interpolated (the sharp
         vessel threshold, rings and folds stay per pixel); 1 = every pixel
         (benchmarks/realism_speed.py: error vs speed).
+    indirect: multi-bounce diffuse inter-reflection precomputed on the mesh
+        (:mod:`room_pipeline.render.indirect`; ``bounces`` 0 = off).
     """
 
     smooth_normals: bool = True
@@ -107,6 +110,7 @@ class RaycastConfig:
     cache_frames: int = 2
     per_pixel_texture: bool = True
     shading_stride: int = 2
+    indirect: IndirectConfig = IndirectConfig()
 
     def __post_init__(self) -> None:
         if self.flow_occlusion not in OCCLUSION_MODES:
@@ -182,6 +186,7 @@ class RaycastRenderer:
                         else np.append(np.asarray(scene.face_labels, dtype=np.int32), np.int32(-1)))
         self._cache: collections.OrderedDict[int, Cast] = collections.OrderedDict()
         self._exposure_ev: float | None = scene.film.exposure_ev
+        self._radiosity: Radiosity | None = None
         self.timings: dict[str, float] = collections.defaultdict(float)   # seconds, accumulated per step
         self.cast_count = 0
 
@@ -449,7 +454,64 @@ class RaycastRenderer:
             lin = shade_coaxial(cos, d2, c.hit, mat, light, alb, cos_axis=self._inv_ray_len)
         if mat.interreflection > 0:
             lin += interreflection(lin, alb, c.depth, c.hit, mat)
+        if self.config.indirect.bounces > 0:
+            lin += self.indirect_radiance(i, c, alb, -n_dot_ray * self._inv_ray_len, normals)
         return lin
+
+    @property
+    def radiosity(self) -> Radiosity:
+        """The mesh's precomputed light transport (built on first use; :mod:`room_pipeline.render.indirect`)."""
+        if self._radiosity is None:
+            t0 = time.perf_counter()
+            sc = self.scene
+            self._radiosity = Radiosity(self._rc, sc.mesh.vertices, sc.mesh.faces, self.origin, sc.material,
+                                        sc.vertex_albedo(), self.config.indirect, self.config.nthreads)
+            self.timings["indirect_build"] += time.perf_counter() - t0
+        return self._radiosity
+
+    def indirect_radiance(self, i: int, c: Cast, albedo: np.ndarray | None, cos_v: np.ndarray,
+                          normals: np.ndarray) -> np.ndarray:
+        """(H, W, 3) float32 radiance of the inter-reflected light at the hits of frame ``i`` (0 elsewhere).
+
+        Diffuse: ``(1 - A(n.v)) albedo E_ind / pi`` with the vertices' indirect irradiance interpolated at the
+        hit; glossy (``indirect.glossy``): ``A(n.v)`` times the radiance of the wall in the mirror direction
+        (one reflection ray every ``indirect.glossy_stride`` pixels, bilinear).  ``cos_v`` (H, W): cosine
+        between normal and view; ``normals`` (H, W, 3): camera-frame unit normals.
+        """
+        import cv2
+
+        rad = self.radiosity
+        t0 = time.perf_counter()
+        pose = self.scene.poses[i]
+        ed, e = rad.vertex_irradiance(pose, self.scene.light)
+        f = self.scene.mesh.faces
+        tab = np.zeros((9, len(f) + 1), dtype=np.float32)
+        tab[:, :-1] = e[f].reshape(-1, 9).T
+        out = self._interp(tab, c, 3).reshape(c.depth.shape + (3,))
+        a = specular_albedo_at(cos_v, self.scene.material)[..., None]          # layering: diffuse 1 - A(n.v)
+        out *= (np.asarray(self.scene.material.base_color, dtype=np.float32) if albedo is None else albedo) * (1 - a)
+        out *= np.float32(1 / np.pi)
+        cfg = self.config.indirect
+        if cfg.glossy:
+            s = cfg.glossy_stride
+            h, w = c.depth.shape
+            sub = c.hit[::s, ::s]
+            gh, gw = sub.shape
+            R = pose[:3, :3]
+            nrm = normals[::s, ::s][sub].astype(np.float64)
+            d = (self.rays[::s, ::s][sub]) * self._inv_ray_len[::s, ::s][sub][:, None]
+            r = d - 2 * np.einsum("ij,ij->i", d, nrm)[:, None] * nrm                 # mirror direction, camera frame
+            p = self.camera_points(c)[::s, ::s][sub].astype(np.float64)
+            org = (p + cfg.eps_m * nrm) @ R.T + pose[:3, 3]
+            lm = rad.mirror_radiance(org, r @ R.T, e + ed[:, None])
+            coarse = np.zeros((gh, gw, 3), dtype=np.float32)
+            coarse[sub] = lm
+            if s > 1:
+                coarse = cv2.resize(coarse, (gw * s, gh * s), interpolation=cv2.INTER_LINEAR)[:h, :w]
+            out += a * coarse
+        out[~c.hit] = 0.0
+        self.timings["indirect"] += time.perf_counter() - t0
+        return out
 
     # ------------------------------------------------------------------ render
     def render(self, frame_index: int, modalities: Iterable[str] = ("rgb", "depth")) -> dict[str, np.ndarray]:
@@ -557,9 +619,11 @@ class RaycastRenderer:
                 "material": dataclasses.asdict(sc.material), "light": dataclasses.asdict(sc.light),
                 "texture": ("appearance function per shading point (render.texture)" if self._per_pixel else
                             "per-vertex albedo interpolated barycentrically" if self._albedo_tab is not None else None),
-                "shading": "single bounce: Lambert (1 - F) base/pi + GGX/Smith/Schlick specular, tip light "
+                "shading": "Lambert (1 - F) base/pi + GGX/Smith/Schlick specular, tip light "
                            "I = P/(4 pi) cos^spot_exponent, inverse-square or exponential falloff; "
-                           "no indirect light, no subsurface",
+                           + (f"indirect light: {self.config.indirect.bounces} diffuse bounces precomputed on the "
+                              "mesh's vertices (render/indirect.py)" if self.config.indirect.bounces > 0 else
+                              "no indirect light") + "; no subsurface",
                 "camera": sc.camera.to_dict(), "conventions": metadata_block()}
 
 

@@ -14,7 +14,7 @@ Light
     shadow rays.
 
 BRDF (dielectric Principled BSDF, metallic 0, no transmission / clearcoat / sheen)
-    ``f = (1 - F) base_color / pi  +  D G F / (4 (n.l) (n.v))`` (``base_color``
+    ``f = (1 - A(n.v)) base_color / pi  +  D G F / (4 (n.l) (n.v))`` (``base_color``
     replaced per pixel by a texture's albedo when one is given), with
     GGX distribution ``D = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2)``,
     ``a = roughness^2`` (Blender's remapping), Smith-GGX masking-shadowing in
@@ -22,6 +22,11 @@ BRDF (dielectric Principled BSDF, metallic 0, no transmission / clearcoat / shee
     ``k = a / 2``, and Schlick's Fresnel ``F = F0 + (1 - F0) (1 - v.h)^5`` with
     ``F0 = 0.08 * specular`` (Principled 'Specular' 0.5 -> F0 = 0.04, IOR 1.5).
     The specular lobe is white (specular tint 0): the wet-mucosa highlights.
+    ``A(n.v)`` is the lobe's directional albedo (:func:`specular_albedo`, dielectric Fresnel): Blender's
+    Principled BSDF (4.0+) scales the diffuse base under the specular layer by it, which darkens walls
+    seen at grazing angles; with ``1 - F`` instead, the direct light of the default scene was 4-14 %
+    brighter than Cycles' at the far, grazing walls (0-bounce check,
+    ``python benchmarks/realism_indirect.py --check-direct``).
 
 Camera response
     Linear pixel value = outgoing radiance ``f E`` times ``2**exposure_ev``,
@@ -29,7 +34,8 @@ Camera response
     view transform) and rounded to 8 bits.
 
 What it leaves out (so Cycles images differ): indirect light
-(inter-reflections brighten the far, dimly lit parts of a tube), subsurface
+(inter-reflections brighten the far, dimly lit parts of a tube; the ray caster adds them with
+:mod:`room_pipeline.render.indirect` when ``RaycastConfig.indirect.bounces`` > 0), subsurface
 scattering (softens and reddens), the light's finite radius (``radius_m``:
 softer, wider highlights; treated as a point here), Blender 4's energy
 compensation of the multiscatter GGX and its layering of specular over
@@ -37,6 +43,7 @@ diffuse (approximated by the ``1 - F`` weight), sampling noise and denoising.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -73,7 +80,7 @@ def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLigh
     # G / (4 nl nv) with G = G1(nl) G1(nv), G1(x) = x / (x (1 - k) + k): the nl nv cancel
     vis = f32(0.25) / ((nl * (1 - k) + k) * (nv * (1 - k) + k))
     ks = (D * vis * fres) * irradiance                                          # white specular lobe
-    kd = (1 - fres) * irradiance
+    kd = (1 - specular_albedo_at(nv, material)) * irradiance                  # layering: 1 - A(n.v)
     if albedo is None:
         base = np.asarray(material.base_color, dtype=f32) / f32(math.pi)
         out = kd[..., None] * base
@@ -83,6 +90,71 @@ def _radiance(nl, nv, nh, vh, r2, mask, material: TissueMaterial, light: TipLigh
     if mask is not None:
         out *= np.asarray(mask, dtype=f32)[..., None]
     return out
+
+
+@functools.lru_cache(maxsize=16)
+def _specular_albedo_table(roughness: float, specular: float) -> np.ndarray:
+    return specular_albedo(np.linspace(0.0, 1.0, _A_NODES), roughness, specular).astype(np.float32)
+
+
+_A_NODES = 129
+
+
+def specular_albedo_at(cos_v: np.ndarray, material: TissueMaterial) -> np.ndarray:
+    """The specular lobe's directional albedo A(n.v) (:func:`specular_albedo`), from a 129-entry table (float32)."""
+    tab = _specular_albedo_table(float(material.roughness), float(material.specular))
+    x = np.clip(np.asarray(cos_v, dtype=np.float32), 0.0, 1.0) * np.float32(_A_NODES - 1)
+    i = np.minimum(x.astype(np.int32), _A_NODES - 2)
+    t = x - i
+    return tab[i] * (1 - t) + tab[i + 1] * t
+
+
+def dielectric_fresnel(cos_i: np.ndarray, ior: float) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of a dielectric of refractive index ``ior`` (from air), float64."""
+    c = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)
+    g2 = ior * ior - 1 + c * c
+    g = np.sqrt(np.maximum(g2, 0.0))
+    a = (g - c) / np.maximum(g + c, 1e-300)
+    b = (c * (g + c) - 1) / (c * (g - c) + 1)
+    return 0.5 * a * a * (1 + b * b)
+
+
+def specular_albedo(cos_v: np.ndarray, roughness: float, specular: float, n: int = 64,
+                    exact_fresnel: bool = True) -> np.ndarray:
+    """Directional albedo of the specular lobe of :func:`_radiance` (GGX, separable Smith-Schlick
+    ``G1(x) = x / (x (1 - k) + k)``, ``k = alpha / 2``, Schlick Fresnel with ``F0 = 0.08 specular``,
+    ``alpha = roughness^2``): the fraction of uniform incident radiance the lobe reflects towards a viewer at
+    ``cos_v`` to the normal -- and, by reciprocity, the fraction of light from that direction it takes.
+    Blender's Principled BSDF (4.0+) layers the dielectric's specular over the diffuse base and scales the
+    base by ``1 - A(n.v)`` so the pair conserves energy; the diffuse term here does the same.
+    ``exact_fresnel``: the dielectric's Fresnel equations at the IOR of ``F0`` (as Blender; the highlight
+    term of :func:`_radiance` keeps Schlick's form, which is F0 at the coaxial light's v = h), else Schlick.
+    Deterministic quadrature over the GGX distribution of half vectors (midpoints of an ``n`` x ``2n``
+    grid of its inverse CDF): ``A = E_h[F G v.h / (n.v n.h)]`` over half vectors whose mirrored light
+    direction is above the surface.  Float64, the shape of ``cos_v``."""
+    a = max(roughness, 1e-3) ** 2
+    f0 = 0.08 * specular
+    sf = math.sqrt(min(f0, 0.99))
+    ior = (1 + sf) / (1 - sf)                  # F0 = ((ior - 1) / (ior + 1))^2: Principled 'Specular' 0.5 -> 1.5
+    fresnel = lambda x: dielectric_fresnel(x, ior)  # noqa: E731
+    k = a / 2
+    u1 = (np.arange(n) + 0.5) / n
+    u2 = (np.arange(2 * n) + 0.5) / (2 * n)
+    th = np.arctan(a * np.sqrt(u1 / (1 - u1)))[:, None]
+    ph = (2 * math.pi * u2)[None, :]
+    hx, hz = np.sin(th) * np.cos(ph), np.cos(th) * np.ones_like(ph)
+    cv = np.clip(np.asarray(cos_v, dtype=np.float64).reshape(-1), 1e-4, 1.0)
+    out = np.empty(len(cv))
+    g1 = lambda x: x / (x * (1 - k) + k)  # noqa: E731
+    for j, c in enumerate(cv):
+        s = math.sqrt(max(1 - c * c, 0.0))
+        vh = s * hx + c * hz
+        lz = 2 * vh * hz - c                     # l = 2 (v.h) h - v
+        ok = (lz > 0) & (vh > 0)
+        F = fresnel(vh) if exact_fresnel else f0 + (1 - f0) * (1 - np.clip(vh, 0, 1)) ** 5
+        val = np.where(ok, F * g1(np.clip(lz, 0, 1)) * g1(c) * vh / (c * hz), 0.0)
+        out[j] = float(val.mean())
+    return out.reshape(np.shape(cos_v))
 
 
 def shade_linear(points_cam: np.ndarray, normals_cam: np.ndarray, mask: np.ndarray | None,

@@ -86,6 +86,10 @@ class RenderParams:
     specular: float = 0.5
     interreflection: float = 0.0
     interreflection_window_mm: float = 6.0
+    indirect_bounces: int = 0
+    indirect_rays_per_point: int = 64
+    indirect_seed: int = 0
+    indirect_shadows: bool = True
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
     light_offset_mm: tuple = (0.0, -1.1, 0.0)
@@ -141,6 +145,7 @@ class RenderParams:
         try:
             scene_parts(p)
             exposure_params(p)
+            indirect_config(p)
         except ValueError as e:
             raise ConfigError(f"render: {str(e).splitlines()[0]}") from None
         return p
@@ -186,6 +191,21 @@ def scene_parts(p: "RenderParams") -> tuple[TissueMaterial, TipLight, Film]:
                 auto_percentile=p.auto_exposure_percentile, response=p.response, gamma=p.gamma,
                 vignetting=p.vignetting, veiling_glare=p.veiling_glare)
     return material, light, film
+
+
+def indirect_config(p: "RenderParams"):
+    """The ray caster's precomputed inter-reflection (render.indirect_*; :mod:`room_pipeline.render.indirect`)."""
+    from ..render.indirect import IndirectConfig
+
+    return IndirectConfig(bounces=p.indirect_bounces, rays_per_point=p.indirect_rays_per_point,
+                          seed=p.indirect_seed, shadows=p.indirect_shadows)
+
+
+def raycast_config(p: "RenderParams", nthreads: int = 0):
+    """The ray caster's configuration of the render config."""
+    from ..render.raycast import RaycastConfig
+
+    return RaycastConfig(nthreads=nthreads, shading_stride=p.shading_stride, indirect=indirect_config(p))
 
 
 def texture_params(d: Mapping[str, Any] | None) -> MucosaTexture:
@@ -256,9 +276,9 @@ class _Renderers:
 
     def __init__(self, scene: Scene, p: RenderParams, nthreads: int = 0, cycles_ev: float | None = None,
                  cycles_threads: int = 0) -> None:
-        from ..render.raycast import RaycastConfig, RaycastRenderer
+        from ..render.raycast import RaycastRenderer
 
-        self.raycast = RaycastRenderer(scene, RaycastConfig(nthreads=nthreads, shading_stride=p.shading_stride))
+        self.raycast = RaycastRenderer(scene, raycast_config(p, nthreads))
         self.cycles = None
         if p.backend == "cycles":
             from ..render.blender import CyclesRenderer
@@ -317,9 +337,9 @@ def _exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | 
     if p.exposure_ev is None and p.auto_exposure == "per_frame":
         from ..render.exposure import exposure_track
 
-        frame_ev = exposure_track(scene, exposure_params(p))
+        frame_ev = exposure_track(scene, exposure_params(p), indirect=indirect_config(p))
         scene = dataclasses.replace(scene, film=dataclasses.replace(scene.film, frame_ev=frame_ev))
-    probe = RaycastRenderer(scene)
+    probe = RaycastRenderer(scene, raycast_config(p))
     meta = probe.metadata()                      # computes the automatic EV (one cast of the reference frame)
     ev = probe.exposure_ev
     if frame_ev is not None:

@@ -1,0 +1,393 @@
+#!/usr/bin/env python3
+"""The ray caster's precomputed inter-reflection (render/indirect.py) against Cycles path tracing.
+
+    python benchmarks/realism_indirect.py --inputs DIR --cache /tmp/refs --check-direct   # 0 bounces vs Cycles
+    python benchmarks/realism_indirect.py --inputs DIR --cache /tmp/refs                  # quality table
+    python benchmarks/realism_indirect.py --inputs DIR --cache /tmp/refs --tiles          # 600x600 1024-spp tiles
+    python benchmarks/realism_indirect.py --inputs DIR --speed                            # CPU s per 600x600 frame
+
+Inputs: a patient folder written by ``dvc repro`` (``anatomy/lung_model.obj``, ``centreline_graph.json``,
+``sequence_000/metadata/simulation.json``); the scene is the render stage's (benchmarks/cycles_reference.py
+builds it: default conf/render, lens distortion off, views trachea / bifurcation / distal picked from the
+route).
+
+**Same mesh on both sides**: Cycles and the ray caster render the render stage's mesh itself, with the
+same area-weighted smooth vertex normals (given to Blender as custom normals) and the appearance baked at
+its vertices (the ray caster with ``per_pixel_texture`` off reads the same bake), so the score measures the
+light transport only.  The product's default RGB (per-pixel appearance) is scored too: it differs from the
+reference by its texture detail as well.
+
+References: Cycles, no adaptive sampling, no denoiser, ``--ref-bounces`` (8) bounces, shadow rays on (the
+physical light; the product's Cycles preset skips them), two halves of ``--ref-spp / 2`` samples with seeds
+1000/1001 averaged in linear radiance; ``MSE_ref = MSE(a, b) / 4`` gives PSNR* (against the noise-free
+image).  Every image goes through the same film: the view's exposure metered on the reference itself (the
+render stage's rule, :func:`room_pipeline.render.shading.auto_exposure_ev` at its percentile/target), veiling
+glare, sRGB, 8 bits.  PSNR of the 8-bit images.  CPU s = ``time.process_time`` of this process (all
+threads).  Results: benchmarks/results/realism_indirect*.{md,json}.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "src"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def psnr(mse: float) -> float:
+    return float(10 * np.log10(1.0 / mse)) if mse > 0 else float("inf")
+
+
+def lumen_normals(mesh) -> np.ndarray:
+    from room_pipeline.render.indirect import vertex_normals_into_lumen
+
+    return vertex_normals_into_lumen(mesh.vertices, mesh.faces)
+
+
+def one_view(scene, i: int, ev: float | None = None):
+    from cycles_reference import view_scene
+
+    sc = view_scene(scene, i)
+    if ev is not None:
+        sc = dataclasses.replace(sc, film=dataclasses.replace(sc.film, exposure_ev=ev, frame_ev=None))
+    return sc
+
+
+def cycles_linear(sc, normals, spp: int, bounces: int, seed: int, threads: int, shadows: bool = True,
+                  denoise: bool = False, border=None) -> tuple[np.ndarray, float]:
+    """Raw linear radiance (exposure 0) of a one-pose scene from Cycles, and its CPU seconds."""
+    from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
+
+    st = CyclesSettings(samples=spp, adaptive_threshold=0.0, denoise=denoise, seed=seed, exposure=0.0,
+                        max_bounces=bounces, threads=threads, cast_shadows=shadows)
+    with CyclesRenderer(sc, st, vertex_normals=normals) as r:
+        if border is not None:
+            set_border(r, border)
+        c0 = time.process_time()
+        img = r.render(0, ("rgb",))["rgb"].astype(np.float32)
+        return img, time.process_time() - c0
+
+
+def set_border(r, border) -> None:
+    """Cycles border render of pixel rows y0:y1, columns x0:x1 (OpenCV rows from the top), not cropped."""
+    x0, x1, y0, y1 = border
+    rr = r._bscene.render
+    w, h = rr.resolution_x, rr.resolution_y
+    rr.use_border = True
+    rr.use_crop_to_border = False
+    rr.border_min_x, rr.border_max_x = x0 / w, x1 / w
+    rr.border_min_y, rr.border_max_y = 1 - y1 / h, 1 - y0 / h      # Blender's y is up
+
+
+def key_of(sc, *parts) -> str:
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(sc.mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(sc.mesh.faces, dtype=np.int64).tobytes())
+    h.update(np.round(sc.poses[0], 12).tobytes())
+    h.update(repr((sc.material, sc.light, sc.camera, parts)).encode())
+    return h.hexdigest()[:16]
+
+
+def reference(sc, normals, name: str, args, bounces: int, spp: int, border=None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Two cached halves (linear, exposure 0) of a Cycles reference."""
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    k = key_of(sc, spp, bounces, border, "shadows")
+    halves, cpu = [], []
+    for seed in (1000, 1001):
+        p = cache / f"{name}_{k}_{seed}.npy"
+        if p.exists():
+            halves.append(np.load(p))
+            continue
+        img, c = cycles_linear(sc, normals, spp // 2, bounces, seed, args.threads, border=border)
+        np.save(str(p) + ".tmp.npy", img)
+        os.replace(str(p) + ".tmp.npy", p)
+        halves.append(img)
+        cpu.append(c)
+        print(f"  reference {name} half {seed}: {c:.0f} CPU s", flush=True)
+    return halves[0], halves[1], {"spp": spp, "bounces": bounces, "cpu_s_halves": cpu}
+
+
+def metered_ev(lin: np.ndarray, film, mask=None) -> float:
+    from room_pipeline.render.shading import auto_exposure_ev
+
+    m = np.ones(lin.shape[:2], bool) if mask is None else mask
+    return auto_exposure_ev(lin, m & (lin.sum(-1) > 0), film)
+
+
+def to8(lin, film, ev):
+    from room_pipeline.render.shading import apply_response
+
+    return apply_response(np.asarray(lin, np.float32), film, exposure_ev=ev).astype(np.float64) / 255
+
+
+def raycast_linear(sc, per_pixel: bool, indirect, threads: int, stride: int = 2, rc_cache: dict | None = None):
+    """Linear radiance (exposure 0, no vignetting) of the ray caster, its CPU s and build CPU s."""
+    from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+
+    sc0 = dataclasses.replace(sc, film=dataclasses.replace(sc.film, exposure_ev=0.0, frame_ev=None, vignetting=0.0))
+    rc = RaycastRenderer(sc0, RaycastConfig(nthreads=threads, per_pixel_texture=per_pixel, shading_stride=stride,
+                                            indirect=indirect))
+    b0 = time.process_time()
+    if indirect.bounces > 0:
+        rc.radiosity
+    build = time.process_time() - b0
+    c0 = time.process_time()
+    out = rc.render(0, ("rgb",))
+    return out["rgb_linear"], time.process_time() - c0, build
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--inputs", default=str(ROOT / "data" / "output" / "patient_000"))
+    ap.add_argument("--sequence", default="sequence_000")
+    ap.add_argument("--cache", default=str(ROOT / "benchmarks" / ".cache" / "realism_indirect"))
+    ap.add_argument("--res", type=int, default=200)
+    ap.add_argument("--ref-spp", type=int, default=256)
+    ap.add_argument("--ref-bounces", type=int, default=8)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--views", default="trachea,bifurcation,distal")
+    ap.add_argument("--check-direct", action="store_true", help="0 bounces: ray caster vs Cycles direct light")
+    ap.add_argument("--grid", default="16,64,256", help="rays per point to try")
+    ap.add_argument("--out", default="realism_indirect")
+    ap.add_argument("--tiles", action="store_true", help="score full-resolution tiles (Cycles border render) of "
+                    "--res frames against a --ref-spp reference (the headline: --res 600 --ref-spp 1024)")
+    ap.add_argument("--tile", type=int, default=64, help="tile side, px")
+    ap.add_argument("--speed", action="store_true", help="CPU s per frame of the default RGB with and without "
+                    "the indirect light, at --res (600 for the headline), each view")
+    args = ap.parse_args()
+    import bpy  # noqa: F401
+
+    from cycles_reference import build_scene, pick_views, render_params
+    from room_pipeline.render.indirect import IndirectConfig
+
+    rp = render_params()
+    scene, graph = build_scene(Path(args.inputs), args.sequence, rp, args.res)
+    scene.vertex_albedo()
+    views = pick_views(scene, graph)
+    names = [v for v in args.views.split(",") if v]
+    normals = lumen_normals(scene.mesh)
+    film = scene.film
+    rows = []
+    if args.speed:
+        speed(scene, views, names, args)
+        return
+    if args.tiles:
+        tiles(scene, views, names, normals, args)
+        return
+    for n in names:
+        i = views[n]
+        sc = one_view(scene, i)
+        bounces = 0 if args.check_direct else args.ref_bounces
+        a, b, meta = reference(sc, normals, n, args, bounces, args.ref_spp)
+        ref = 0.5 * (a + b)
+        ev = metered_ev(ref, film)
+        ref8 = to8(ref, film, ev)
+        mse_ref = float(np.mean((to8(a, film, ev) - to8(b, film, ev)) ** 2)) / 4
+        print(f"{n} (pose {i}) EV {ev:+.3f}: reference's own PSNR {psnr(mse_ref):.1f} dB", flush=True)
+
+        def score(label, lin, cpu, **kw):
+            x = to8(lin, film, ev)
+            mse = float(np.mean((x - ref8) ** 2))
+            ratio = float(np.sum(lin) / max(np.sum(ref), 1e-30))
+            row = {"view": n, "pose": i, "method": label, "cpu_s": cpu, "psnr_db": psnr(mse),
+                   "psnr_star_db": psnr(mse - mse_ref) if mse > mse_ref else None, "energy_ratio": ratio, **kw}
+            rows.append(row)
+            print(f"  {label:50s} {cpu:6.2f} CPU s  PSNR {row['psnr_db']:6.2f}  PSNR* "
+                  f"{row['psnr_star_db'] or float('nan'):6.2f}  sum ratio {ratio:.4f}", flush=True)
+
+        if args.check_direct:
+            lin, cpu, _ = raycast_linear(sc, False, IndirectConfig(bounces=0), args.threads)
+            score("ray caster, direct only, vertex albedo (same mesh)", lin, cpu)
+            continue
+        lin, cpu, _ = raycast_linear(sc, False, IndirectConfig(bounces=0), args.threads)
+        score("ray caster, direct only", lin, cpu)
+        for k in (int(x) for x in args.grid.split(",")):
+            for nb in (args.ref_bounces,):
+                cfg = IndirectConfig(bounces=nb, rays_per_point=k)
+                lin, cpu, build = raycast_linear(sc, False, cfg, args.threads)
+                score(f"ray caster + indirect K {k}, {nb} bounces (vertex albedo)", lin, cpu, build_cpu_s=build,
+                      rays_per_point=k, bounces=nb)
+        cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64)
+        lin, cpu, build = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride)
+        score("the product: + indirect K 64, per-pixel appearance", lin, cpu, build_cpu_s=build, rays_per_point=64,
+              bounces=args.ref_bounces, per_pixel_texture=True)
+    doc = {"args": vars(args), "views": views, "rows": rows, "load_avg": os.getloadavg()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{args.out}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    write_md(args.out)
+
+
+def tile_boxes(res: int, t: int) -> list[tuple[int, int, int, int]]:
+    """Two tiles (x0, x1, y0, y1) of a res x res frame: the centre (the far lumen) and half-way to the
+    upper-left corner (the near wall), fixed, not chosen by looking at images."""
+    c = res // 2 - t // 2
+    q = res // 4 - t // 2
+    return [(c, c + t, c, c + t), (q, q + t, q, q + t)]
+
+
+def tiles(scene, views, names, normals, args) -> None:
+    """PSNR of the product's RGB (per-pixel appearance and vertex albedo, K 64, ``--ref-bounces``) on
+    full-resolution tiles against a Cycles border render of ``--ref-spp`` samples (two halves)."""
+    from room_pipeline.render.indirect import IndirectConfig
+
+    rp = render_params_default()
+    film = scene.film
+    rows = []
+    for n in names:
+        i = views[n]
+        sc = one_view(scene, i)
+        cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64)
+        lin_v, cpu_v, _ = raycast_linear(sc, False, cfg, args.threads)
+        lin_p, cpu_p, _ = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride)
+        ev = metered_ev(lin_p, film)                    # the frame's exposure, metered on the product's frame
+        for box in tile_boxes(args.res, args.tile):
+            x0, x1, y0, y1 = box
+            a, b, meta = reference(sc, normals, f"{n}_tile{x0}_{y0}", args, args.ref_bounces, args.ref_spp,
+                                   border=box)
+            a, b = a[y0:y1, x0:x1], b[y0:y1, x0:x1]
+            ref8 = to8(0.5 * (a + b), film, ev)
+            mse_ref = float(np.mean((to8(a, film, ev) - to8(b, film, ev)) ** 2)) / 4
+            for label, lin in (("ray caster + indirect, vertex albedo (same texture as Cycles)", lin_v),
+                               ("the product: ray caster + indirect, per-pixel appearance", lin_p)):
+                x = to8(lin[y0:y1, x0:x1], film, ev)
+                mse = float(np.mean((x - ref8) ** 2))
+                rows.append({"view": n, "pose": i, "tile": box, "method": label, "psnr_db": psnr(mse),
+                             "psnr_star_db": psnr(mse - mse_ref) if mse > mse_ref else None,
+                             "ref_psnr_db": psnr(mse_ref), "exposure_ev": ev, "ref": meta})
+                print(json.dumps({k: v for k, v in rows[-1].items() if k != "ref"}), flush=True)
+    doc = {"args": vars(args), "views": views, "rows": rows, "load_avg": os.getloadavg()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{args.out}_tiles.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    write_md(args.out)
+
+
+def speed(scene, views, names, args) -> None:
+    """CPU s of the render stage's RGB per frame (cast, normals, per-pixel appearance, shading, indirect, film;
+    exposure fixed: the meter's cost is measured separately) at --res, the radiosity built beforehand."""
+    from room_pipeline.render.exposure import raw_exposures
+    from room_pipeline.render.indirect import IndirectConfig
+    from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+    from room_pipeline.stages.render import exposure_params
+
+    rows = []
+    grid = [(0, 64)] + [(8, int(k)) for k in args.grid.split(",")]
+    for n in names:
+        i = views[n]
+        sc = one_view(scene, i, 0.0)
+        for nb, k in grid:
+            cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k))
+            rc = RaycastRenderer(sc, cfg)
+            b0 = time.process_time()
+            if nb:
+                rc.radiosity
+            build = time.process_time() - b0
+            rc.render(0, ("rgb", "depth"))
+            cpu, wall = [], []
+            for _ in range(3):
+                rc._cache.clear()
+                for key in list(rc.timings):
+                    rc.timings[key] = 0.0
+                c0, w0 = time.process_time(), time.perf_counter()
+                rc.render(0, ("rgb",))
+                cpu.append(time.process_time() - c0)
+                wall.append(time.perf_counter() - w0)
+            m0 = time.process_time()
+            raw_exposures(sc, exposure_params(render_params_default()), args.threads,
+                          IndirectConfig(bounces=nb, rays_per_point=k) if nb else None)
+            meter = time.process_time() - m0
+            rows.append({"view": n, "bounces": nb, "rays_per_point": k, "cpu_s": float(np.median(cpu)),
+                         "wall_s": float(np.median(wall)), "indirect_wall_s": float(rc.timings["indirect"]),
+                         "meter_cpu_s_incl_build": meter, "build_cpu_s": build, "res": args.res,
+                         "n_vertices": int(sc.mesh.n_vertices)})
+            print(json.dumps(rows[-1]), flush=True)
+    doc = {"args": vars(args), "rows": rows, "load_avg": os.getloadavg(), "nproc": os.cpu_count()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{args.out}_speed.json").write_text(json.dumps(doc, indent=1) + "\n")
+    write_md(args.out)
+
+
+def render_params_default():
+    from cycles_reference import render_params
+
+    return render_params()
+
+
+
+def write_md(out: str = "realism_indirect") -> None:
+    out = out.removesuffix("_direct")
+    """benchmarks/results/<out>.md from the quality, tiles and speed JSONs that exist."""
+    L = ["# Ray caster + precomputed inter-reflection (render/indirect.py) against Cycles path tracing", "",
+         "Same mesh on both sides (the render stage's mesh, its area-weighted smooth normals, the appearance baked "
+         "at its vertices) unless the row says 'per-pixel appearance' (the product's texture, which Cycles "
+         "cannot evaluate per pixel). References: Cycles, no denoiser, no adaptive sampling, 8 bounces, shadow "
+         "rays on; PSNR of 8-bit sRGB frames through the same film (veiling glare, the view's metered "
+         "exposure); PSNR* removes the reference's own noise (MSE(a, b) / 4 of its two halves). "
+         "Patient: the default phantom patient_000, sequence_000; views picked from the route.", ""]
+    for q in (RESULTS / f"{out}_direct.json", RESULTS / f"{out}.json"):
+        if not q.exists():
+            continue
+        d = json.loads(q.read_text())
+        a = d["args"]
+        direct = a.get("check_direct")
+        L += [f"## {'Direct light only (0 bounces on both sides)' if direct else 'Whole frames'}, "
+              f"{a['res']}x{a['res']}, {a['ref_spp']}-spp reference", "",
+              f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {a['res']} --ref-spp "
+              f"{a['ref_spp']}{' --check-direct' if direct else ' --grid ' + a['grid']}` (load average "
+              f"{d['load_avg'][0]:.1f}; CPU s of the RGB at this resolution, build excluded).", "",
+              "| view | method | CPU s | PSNR dB | PSNR* dB | sum(ours)/sum(ref) |", "|---|---|---|---|---|---|"]
+        for r in d["rows"]:
+            ps = "" if r["psnr_star_db"] is None else f"{r['psnr_star_db']:.2f}"
+            L.append(f"| {r['view']} | {r['method']} | {r['cpu_s']:.2f} | {r['psnr_db']:.2f} | {ps} | "
+                     f"{r['energy_ratio']:.4f} |")
+        L.append("")
+    t = RESULTS / f"{out}_tiles.json"
+    if t.exists():
+        d = json.loads(t.read_text())
+        a = d["args"]
+        L += [f"## Full-resolution tiles, {a['res']}x{a['res']} frames, {a['ref_spp']}-spp reference", "",
+              f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {a['res']} --ref-spp "
+              f"{a['ref_spp']} --tiles --tile {a['tile']}`: Cycles border renders of {a['tile']}x{a['tile']} px "
+              "tiles (the centre, and half-way to the upper-left corner) of the full frame; the exposure metered "
+              f"on the product's full frame (load average {d['load_avg'][0]:.1f}).", "",
+              "| view | tile x0,x1,y0,y1 | method | PSNR dB | PSNR* dB | reference's own PSNR dB |",
+              "|---|---|---|---|---|---|"]
+        for r in d["rows"]:
+            ps = "" if r["psnr_star_db"] is None else f"{r['psnr_star_db']:.2f}"
+            L.append(f"| {r['view']} | {','.join(str(x) for x in r['tile'])} | {r['method']} | {r['psnr_db']:.2f} | "
+                     f"{ps} | {r['ref_psnr_db']:.1f} |")
+        L.append("")
+    s = RESULTS / f"{out}_speed.json"
+    if s.exists():
+        d = json.loads(s.read_text())
+        a = d["args"]
+        L += [f"## Cost per {a['res']}x{a['res']} frame ({a['threads']} threads)", "",
+              f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {a['res']} --speed --grid "
+              f"{a['grid']}`: the render stage's RGB (cast, normals, per-pixel appearance, shading, indirect, film; "
+              "median of 3, the precomputation excluded and listed), load average "
+              f"{d['load_avg'][0]:.1f} on {d['nproc']} cores (wall is inflated by the other users).", "",
+              "| view | bounces | K rays/vertex | CPU s/frame | wall s/frame | precompute CPU s (once per mesh) |",
+              "|---|---|---|---|---|---|"]
+        for r in d["rows"]:
+            L.append(f"| {r['view']} | {r['bounces']} | {r['rays_per_point'] if r['bounces'] else '-'} | "
+                     f"{r['cpu_s']:.3f} | {r['wall_s']:.3f} | {r['build_cpu_s']:.2f} |")
+        L.append("")
+    (RESULTS / f"{out}.md").write_text("\n".join(L) + "\n")
+    print("\n".join(L))
+
+
+if __name__ == "__main__":
+    if sys.argv[1:] == ["--md"]:
+        write_md()
+    else:
+        main()

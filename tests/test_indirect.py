@@ -1,0 +1,207 @@
+"""Precomputed multi-bounce inter-reflection of the ray caster (render/indirect.py)."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from room_pipeline.io.mesh import Mesh
+from room_pipeline.render.camera import CameraIntrinsics, look_at
+from room_pipeline.render.indirect import IndirectConfig, Radiosity, cosine_directions, vertex_normals_into_lumen
+from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+from room_pipeline.render.scene import Film, Scene, TipLight, TissueMaterial
+
+o3d = pytest.importorskip("open3d")
+MM = 1e-3
+
+
+def sphere(radius=10 * MM, resolution=24) -> Mesh:
+    """A closed sphere, outward faces (air inside -> tissue outside, the lumen convention)."""
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=resolution)
+    return Mesh(np.asarray(m.vertices, dtype=np.float64), np.asarray(m.triangles, dtype=np.int64))
+
+
+def box(half=10 * MM) -> Mesh:
+    """A closed cube subdivided into small triangles, outward faces."""
+    m = o3d.geometry.TriangleMesh.create_box(2 * half, 2 * half, 2 * half).translate((-half, -half, -half))
+    m = m.subdivide_midpoint(number_of_iterations=4)
+    return Mesh(np.asarray(m.vertices, dtype=np.float64), np.asarray(m.triangles, dtype=np.int64))
+
+
+def tube(radius=5 * MM, z0=-5 * MM, z1=60 * MM, n_theta=48, n_z=40) -> Mesh:
+    """Open cylinder along +z, outward faces (as tests/test_raycast.py)."""
+    th = np.linspace(0, 2 * np.pi, n_theta, endpoint=False)
+    zs = np.linspace(z0, z1, n_z)
+    v = np.stack([np.broadcast_to(radius * np.cos(th), (n_z, n_theta)),
+                  np.broadcast_to(radius * np.sin(th), (n_z, n_theta)), np.broadcast_to(zs[:, None], (n_z, n_theta))], -1)
+    idx = np.arange(n_z * n_theta).reshape(n_z, n_theta)
+    a, b = idx[:-1], np.roll(idx, -1, axis=1)[:-1]
+    c, d = idx[1:], np.roll(idx, -1, axis=1)[1:]
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([b, d, c], -1).reshape(-1, 3)])
+    return Mesh(v.reshape(-1, 3), faces)
+
+
+def scene_of(mesh, pose, base=(0.5, 0.5, 0.5), light=None, res=48) -> Scene:
+    cam = CameraIntrinsics.from_fov(res, res, 90.0)
+    mat = TissueMaterial(base_color=base, specular=0.0)
+    return Scene(mesh, cam, np.asarray([pose]), np.array([0.0]), material=mat,
+                 light=light or TipLight(power_w=0.01, offset_m=(0.0, 0.0, 0.0)),
+                 film=Film(exposure_ev=0.0, veiling_glare=0.0))
+
+
+def radiosity(mesh, k=64, bounces=8, base=(0.5, 0.5, 0.5), seed=0):
+    import open3d as o3d
+
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    return Radiosity(rc, mesh.vertices, mesh.faces, np.zeros(3), TissueMaterial(base_color=base, specular=0.0),
+                     None, IndirectConfig(bounces=bounces, rays_per_point=k, seed=seed), nthreads=1)
+
+
+def test_cosine_weighted_directions():
+    n = vertex_normals_into_lumen(sphere().vertices, sphere().faces)[:50]
+    d = cosine_directions(n, 64, 3)
+    assert np.allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
+    cos = np.einsum("nkc,nc->nk", d, n)
+    assert cos.min() >= 0
+    assert abs(cos.mean() - 2 / 3) < 0.01            # E[cos] under a cosine-weighted hemisphere
+    assert abs((cos ** 2).mean() - 0.5) < 0.01
+
+
+@pytest.mark.parametrize("make", [sphere, box])
+def test_white_furnace_closed_surface(make):
+    """Every gather ray of a closed surface lands on it: rows of G sum to 1, and a uniform direct
+    irradiance E0 with albedo rho gives E0 sum_{k<=n} rho^k after n bounces."""
+    mesh = make()
+    rad = radiosity(mesh, k=16, bounces=6)
+    rows = np.asarray(rad.G.sum(axis=1)).ravel()
+    assert np.allclose(rows, 1.0, atol=1e-5)
+    e0 = np.full(mesh.n_vertices, 2.0, np.float32)
+    ind = rad.indirect_irradiance(e0)
+    expect = 2.0 * sum(0.5 ** k for k in range(1, 7))
+    assert np.allclose(ind, expect, rtol=1e-4)
+    # many bounces converge to the closed form E0 rho / (1 - rho)
+    assert np.allclose(rad.indirect_irradiance(e0, bounces=60), 2.0 * 0.5 / 0.5, rtol=1e-4)
+
+
+def test_indirect_zero_for_black_walls_and_zero_bounces():
+    mesh = sphere()
+    rad = radiosity(mesh, base=(0.0, 0.0, 0.0))
+    e0 = np.ones(mesh.n_vertices, np.float32)
+    assert not rad.indirect_irradiance(e0).any()
+    rad = radiosity(mesh)
+    assert not rad.indirect_irradiance(e0, bounces=0).any()
+
+
+def test_gather_matrix_is_deterministic_and_seeded():
+    a, b, c = radiosity(box(), seed=0), radiosity(box(), seed=0), radiosity(box(), seed=1)
+    assert a.G.data.tobytes() == b.G.data.tobytes() and a.G.indices.tobytes() == b.G.indices.tobytes()
+    assert c.G.nnz != a.G.nnz or c.G.data.tobytes() != a.G.data.tobytes()
+
+
+def test_sphere_interior_matches_the_closed_form():
+    """Point light at the centre of a sphere of radius R: E_dir = P/(4 pi R^2) everywhere, and with every
+    bounce E = E_dir / (1 - rho); the pixel radiance is rho E / pi (specular 0)."""
+    R, P, rho = 10 * MM, 0.01, 0.6
+    mesh = sphere(R, resolution=30)
+    pose = look_at(np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    sc = scene_of(mesh, pose, base=(rho,) * 3, light=TipLight(power_w=P, offset_m=(0.0, 0.0, 0.0)))
+    rr = RaycastRenderer(sc, RaycastConfig(indirect=IndirectConfig(bounces=200, rays_per_point=16), nthreads=1))
+    out = rr.render(0, ("rgb",))
+    lin = out["rgb_linear"][out["hit"]]
+    e_dir = P / (4 * math.pi * R * R)
+    # the faceted sphere's vertices sit at R, its face centres slightly nearer: a fraction of a per cent
+    np.testing.assert_allclose(lin.mean(axis=0), rho * e_dir / (1 - rho) / math.pi, rtol=0.01)
+    ind = rr.radiosity.indirect_irradiance(rr.radiosity.direct_irradiance(pose, sc.light))
+    np.testing.assert_allclose(ind.mean(), e_dir * rho / (1 - rho), rtol=0.01)
+
+
+def test_render_with_indirect_is_finite_brighter_and_deterministic():
+    mesh = tube()
+    pose = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.05]))
+    sc = scene_of(mesh, pose, light=TipLight(power_w=0.01, offset_m=(0.0, -1.1 * MM, 0.0), spot_exponent=2.767))
+    base = RaycastRenderer(sc, RaycastConfig(nthreads=1)).render(0, ("rgb",))
+    cfg = RaycastConfig(nthreads=1, indirect=IndirectConfig(bounces=8, rays_per_point=16))
+    a = RaycastRenderer(sc, cfg).render(0, ("rgb",))
+    b = RaycastRenderer(sc, cfg).render(0, ("rgb",))
+    assert np.isfinite(a["rgb_linear"]).all()
+    assert a["rgb"].tobytes() == b["rgb"].tobytes()
+    diff = a["rgb_linear"] - base["rgb_linear"]
+    assert diff.min() >= 0 and diff[a["hit"]].mean() > 0
+    # the far, dim end of the tube gains relatively more than the lit wall near the tip
+    y = a["rgb_linear"].sum(-1) / np.maximum(base["rgb_linear"].sum(-1), 1e-30)
+    d = RaycastRenderer(sc, RaycastConfig(nthreads=1)).render(0, ("depth",))["depth"]
+    hit = a["hit"]
+    assert np.median(y[hit & (d > np.percentile(d[hit], 80))]) > np.median(y[hit & (d < np.percentile(d[hit], 20))])
+
+
+def test_shadowed_points_get_no_direct_light():
+    """Two rooms joined by nothing: a point behind a wall (seen from the light) gets no direct light with
+    shadows on, and some with them off."""
+    mesh = box()
+    rc_mesh = mesh
+    pose = look_at(np.array([0.0, 0.0, -5 * MM]), np.array([0.0, 0.0, 1.0]))
+    sc = scene_of(rc_mesh, pose)
+    import open3d as o3d
+
+    # an inner blocker: a small closed cube in front of the light
+    blk = o3d.geometry.TriangleMesh.create_box(4 * MM, 4 * MM, 1 * MM).translate((-2 * MM, -2 * MM, -3 * MM))
+    v = np.concatenate([mesh.vertices, np.asarray(blk.vertices)])
+    f = np.concatenate([mesh.faces, np.asarray(blk.triangles)[:, ::-1] + mesh.n_vertices])  # faces into the room
+    m2 = Mesh(v, f)
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    on = Radiosity(rc, v, f, np.zeros(3), sc.material, None, IndirectConfig(bounces=1, rays_per_point=4), 1)
+    off = Radiosity(rc, v, f, np.zeros(3), sc.material, None,
+                    IndirectConfig(bounces=1, rays_per_point=4, shadows=False), 1)
+    light = TipLight(power_w=0.01)
+    e_on, e_off = on.direct_irradiance(pose, light), off.direct_irradiance(pose, light)
+    # far wall (z = +10 mm) straight behind the blocker
+    far = np.flatnonzero((np.abs(v[:, 2] - 10 * MM) < 1e-9) & (np.abs(v[:, 0]) < 1 * MM) & (np.abs(v[:, 1]) < 1 * MM))
+    assert far.size and np.all(e_on[far] == 0) and np.all(e_off[far] > 0)
+    assert m2.n_faces == len(f)
+
+
+@pytest.mark.parametrize("bad", [{"indirect_bounces": -1}, {"indirect_rays_per_point": 0}])
+def test_bad_indirect_config_is_refused(bad):
+    from room_pipeline.errors import ConfigError
+    from room_pipeline.stages.render import RenderParams
+
+    with pytest.raises(ConfigError, match="indirect"):
+        RenderParams.from_dict(bad)
+
+
+def test_render_config_reaches_the_ray_caster_and_the_meter():
+    from room_pipeline.stages.render import RenderParams, indirect_config, raycast_config
+
+    p = RenderParams.from_dict({"indirect_bounces": 3, "indirect_rays_per_point": 9, "indirect_seed": 4})
+    assert indirect_config(p) == IndirectConfig(bounces=3, rays_per_point=9, seed=4)
+    assert raycast_config(p).indirect.bounces == 3
+
+
+def test_agrees_with_cycles_path_tracing_in_a_closed_sphere():
+    """8 diffuse + glossy bounces inside a sphere lit from near its centre, on the same mesh and normals as
+    Cycles (8 bounces, shadow rays, 64 spp): a known gap, measured, not hidden.  Direct light only (0
+    bounces) the mean radiance agrees within 3 %; with 1 bounce the ray caster is 2.8-3.8 % brighter, with
+    8 bounces 5.8-6.4 % (in the airway views of benchmarks/results/realism_indirect.md: -2 to +2 %).  The
+    cause is not found yet; this guards it from growing."""
+    pytest.importorskip("bpy")
+    from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
+
+    mesh = sphere(10 * MM, resolution=30)
+    pose = look_at(np.array([0.0, 0.0, -2 * MM]), np.array([0.0, 0.3, 1.0]))
+    light = TipLight(power_w=0.01, offset_m=(0.0, -1.1 * MM, 0.0), radius_m=0.1 * MM)
+    cam = CameraIntrinsics.from_fov(48, 48, 90.0)
+    sc = Scene(mesh, cam, np.asarray([pose]), np.array([0.0]), light=light,
+               material=TissueMaterial(base_color=(0.7, 0.4, 0.3)), film=Film(exposure_ev=0.0, veiling_glare=0.0))
+    nb = 8
+    rr = RaycastRenderer(sc, RaycastConfig(indirect=IndirectConfig(bounces=nb, rays_per_point=64), nthreads=1))
+    ours = rr.render(0, ("rgb",))["rgb_linear"]
+    st = CyclesSettings(samples=64, adaptive_threshold=0.0, denoise=False, exposure=0.0, max_bounces=nb,
+                        cast_shadows=True, threads=1)
+    with CyclesRenderer(sc, st, vertex_normals=vertex_normals_into_lumen(mesh.vertices, mesh.faces)) as r:
+        ref = r.render(0, ("rgb",))["rgb"]
+    ratio = ours.reshape(-1, 3).mean(axis=0) / ref.reshape(-1, 3).mean(axis=0)
+    assert np.all(np.abs(ratio - 1) < 0.08), ratio
