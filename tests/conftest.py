@@ -6,6 +6,15 @@ from pathlib import Path
 
 import pytest
 
+# bpy before anything can import pymeshlab: pymeshlab's Embree loaded first breaks bpy's (undefined symbol
+# rtcGetSceneTraversable; ../shared/DESIGN.md).  Loading bpy here, when installed, makes every test file
+# independent of the order pytest collects them in (test_collision.py decimates with pymeshlab, and
+# test_indirect.py / test_blender.py render with Cycles in the same process).
+try:
+    import bpy  # noqa: F401
+except ImportError:
+    pass
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ROOM_SHARED_DATA", REPO.parent / "shared" / "data"))
 

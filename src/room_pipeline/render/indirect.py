@@ -126,9 +126,11 @@ class Radiosity:
 
     def __init__(self, rc, vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, material: TissueMaterial,
                  albedo: np.ndarray | None, config: IndirectConfig, nthreads: int = 0) -> None:
-        import open3d as o3d
         import scipy.sparse as sp
 
+        from ..geometry.open3d_adapter import o3d as open3d_module
+
+        o3d = open3d_module()
         self._o3d = o3d
         self.rc = rc
         self.config = config
