@@ -69,7 +69,7 @@ class MeshParams:
     planar_quadric: bool = True
     tetrahedralize: bool = False
     tet_edge_length_fraction: float = 0.05
-    collision_decimation: float = 0.25
+    collision_decimation: float = 0.5
     collision_max_error_mm: float = 0.25
 
     def __post_init__(self) -> None:
