@@ -59,7 +59,7 @@ from scipy.optimize import least_squares
 from ..conventions import MM
 from ..errors import ConfigError
 from ..robot.controller import IKController
-from ..robot.kinematics import ScopeGeometry, fk
+from ..robot.kinematics import ScopeGeometry, camera_roll, fk, straight_roll_change
 
 SdfFn = Callable[[np.ndarray], np.ndarray]
 
@@ -121,37 +121,6 @@ def camera_poses(route, q: np.ndarray, geometry: ScopeGeometry) -> np.ndarray:
     F = route.frames(q[:, 2])
     local = fk(np.column_stack([q[:, 0], q[:, 1], np.zeros(len(q))]), geometry=geometry)
     return F @ local
-
-
-def straight_roll_change_deg(roll_rad: np.ndarray, q1: np.ndarray, q1_max: float, fraction: float = 0.05) -> float:
-    """Largest roll change (deg, max - min of the unwrapped roll) over runs of frames with
-    ``|q1| < fraction q1_max`` (the simulate report's straight-stretch definition)."""
-    roll = np.unwrap(np.asarray(roll_rad, float))
-    straight = np.abs(np.asarray(q1, float)) < fraction * q1_max
-    worst, i, n = 0.0, 0, len(roll)
-    while i < n:
-        if not straight[i]:
-            i += 1
-            continue
-        j = i
-        while j < n and straight[j]:
-            j += 1
-        worst = max(worst, float(roll[i:j].max() - roll[i:j].min()))
-        i = j
-    return math.degrees(worst)
-
-
-def _roll_about_view(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Signed roll (rad) of frame ``R_a`` about its view axis relative to ``R_b`` turned onto it."""
-    za, zb = R_a[:, 2], R_b[:, 2]
-    v = np.cross(zb, za)
-    s, c = float(np.linalg.norm(v)), float(zb @ za)
-    xb = R_b[:, 0]
-    if s > 1e-12:
-        k = v / s
-        xb = xb * c + np.cross(k, xb) * s + k * float(k @ xb) * (1.0 - c)
-    xa = R_a[:, 0]
-    return float(math.atan2(float(np.cross(xb, xa) @ za), float(xb @ xa)))
 
 
 def plan_joints(route, targets: np.ndarray, arclength: np.ndarray, timestamps: np.ndarray, sdf_fn: SdfFn,
@@ -268,7 +237,7 @@ def plan_joints(route, targets: np.ndarray, arclength: np.ndarray, timestamps: n
         deficit.append(float(np.max(need[inside] - c[inside], initial=0.0)))
     body_clear = np.array(body_clear) - rs
     cam_clear = -np.asarray(sdf_fn(poses[:, :3, 3]), float)
-    roll = np.array([_roll_about_view(poses[i, :3, :3], targets[i, :3, :3]) for i in range(T)])
+    roll = np.array([camera_roll(poses[i, :3, :3], targets[i, :3, :3]) for i in range(T)])
     dq = np.diff(q_plan, axis=0) / np.maximum(np.diff(timestamps), 1e-12)[:, None] if T > 1 else np.zeros((1, 3))
     dq[:, 1] = np.diff(np.unwrap(q_plan[:, 1])) / np.maximum(np.diff(timestamps), 1e-12) if T > 1 else 0.0
 
@@ -288,7 +257,7 @@ def plan_joints(route, targets: np.ndarray, arclength: np.ndarray, timestamps: n
         "roll_vs_path_deg": {"description": "planned camera roll about its view axis relative to the path's "
                                             "rotation-minimising frame",
                              "max_abs": float(np.degrees(np.abs(np.unwrap(roll)).max())),
-                             "straight_stretch_change_max": straight_roll_change_deg(roll, q_plan[:, 0], q1m),
+                             "straight_stretch_change_max": math.degrees(straight_roll_change(roll, q_plan[:, 0], q1m)),
                              "straight_stretch": "consecutive frames with |q1| < 0.05 q1_max"},
         "camera_clearance_min_mm": float(cam_clear.min() * 1e3),
         "body_surface_clearance_min_mm": float(body_clear.min() * 1e3),

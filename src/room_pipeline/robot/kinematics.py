@@ -588,3 +588,38 @@ def ik(target_position, target_direction=None, *, q0=None, s=None,
     start = _pose_start(p, t, w, q0, s, geometry)
     q, _, its = _lm(start, p, t, w, s, geometry, max_iter)
     return finish(q, its, t)
+
+
+def camera_roll(R_act: np.ndarray, R_plan: np.ndarray) -> float:
+    """Roll (rad) of an actual camera about its view axis relative to the planned camera.
+
+    The planned frame is first turned by the least rotation taking its view axis (z) onto the
+    actual one; the roll is the signed angle, about the actual z, from its x axis to the actual x.
+    """
+    za, zp = R_act[:, 2], R_plan[:, 2]
+    v = np.cross(zp, za)
+    s, c = float(np.linalg.norm(v)), float(zp @ za)
+    xp = R_plan[:, 0]
+    if s > 1e-12:
+        k = v / s
+        xp = xp * c + np.cross(k, xp) * s + k * float(k @ xp) * (1.0 - c)
+    xa = R_act[:, 0]
+    return float(math.atan2(float(np.cross(xp, xa) @ za), float(xp @ xa)))
+
+
+def straight_roll_change(roll: np.ndarray, q1: np.ndarray, q1_max: float, fraction: float = 0.05) -> float:
+    """Largest camera-roll change (rad, max - min of the unwrapped roll) over a straight stretch: a
+    run of consecutive frames with ``|q1| < fraction q1_max``; 0 when there is none."""
+    roll = np.unwrap(np.asarray(roll, float))
+    straight = np.abs(np.asarray(q1, float)) < fraction * q1_max
+    worst, i, n = 0.0, 0, len(roll)
+    while i < n:
+        if not straight[i]:
+            i += 1
+            continue
+        j = i
+        while j < n and straight[j]:
+            j += 1
+        worst = max(worst, float(roll[i:j].max() - roll[i:j].min()))
+        i = j
+    return worst

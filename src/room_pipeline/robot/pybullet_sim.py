@@ -110,7 +110,7 @@ from ..io.mesh import Mesh
 from ..progress import progress
 from .actuation import Actuator, CommandSignal, sample_delay
 from .controller import IKController, rate_limit
-from .kinematics import ScopeGeometry, kappa
+from .kinematics import ScopeGeometry, camera_roll, kappa, straight_roll_change  # noqa: F401 (re-exported)
 
 INSERTION_MODELS = ("kinematic", "passive")
 FRICTION_MODELS = ("switch", "dynamic")
@@ -312,41 +312,6 @@ def _log_so3(R: np.ndarray) -> np.ndarray:
         axis = R[:, i] + np.eye(3)[i]
         return a * axis / np.linalg.norm(axis)
     return a / (2.0 * math.sin(a)) * v
-
-
-def camera_roll(R_act: np.ndarray, R_plan: np.ndarray) -> float:
-    """Roll (rad) of an actual camera about its view axis relative to the planned camera.
-
-    The planned frame is first turned by the least rotation taking its view axis (z) onto the
-    actual one; the roll is the signed angle, about the actual z, from its x axis to the actual x.
-    """
-    za, zp = R_act[:, 2], R_plan[:, 2]
-    v = np.cross(zp, za)
-    s, c = float(np.linalg.norm(v)), float(zp @ za)
-    xp = R_plan[:, 0]
-    if s > 1e-12:
-        k = v / s
-        xp = xp * c + np.cross(k, xp) * s + k * float(k @ xp) * (1.0 - c)
-    xa = R_act[:, 0]
-    return float(math.atan2(float(np.cross(xp, xa) @ za), float(xp @ xa)))
-
-
-def straight_roll_change(roll: np.ndarray, q1: np.ndarray, q1_max: float, fraction: float = 0.05) -> float:
-    """Largest camera-roll change (rad, max - min of the unwrapped roll) over a straight stretch: a
-    run of consecutive frames with ``|q1| < fraction q1_max``; 0 when there is none."""
-    roll = np.unwrap(np.asarray(roll, float))
-    straight = np.abs(np.asarray(q1, float)) < fraction * q1_max
-    worst, i, n = 0.0, 0, len(roll)
-    while i < n:
-        if not straight[i]:
-            i += 1
-            continue
-        j = i
-        while j < n and straight[j]:
-            j += 1
-        worst = max(worst, float(roll[i:j].max() - roll[i:j].min()))
-        i = j
-    return worst
 
 
 def _quat_to_mat(qt) -> np.ndarray:
