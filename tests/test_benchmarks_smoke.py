@@ -27,7 +27,20 @@ RUN = Path(os.environ.get("ROOM_BENCH_RUN") or REPO / "data" / "output")
 
 
 def _has_run() -> bool:
-    return any(RUN.glob("patient_*/sequence_*/metadata/render.json"))
+    """A complete rendered run: a patient with its anatomy and a sequence whose render finished.
+
+    A ``data/output`` left by a DVC run whose cached outputs are absent (a copy of the working tree holds the
+    git-visible metrics and metadata but not the cached anatomy and frames) is not a run: every file the smoke
+    scripts open first is checked, not only ``render.json``.
+    """
+    for render_json in RUN.glob("patient_*/sequence_*/metadata/render.json"):
+        seq = render_json.parents[1]
+        anatomy = seq.parent / "anatomy"
+        if ((anatomy / "lung_model.obj").is_file() and (anatomy / "centreline_graph.json").is_file()
+                and (seq / "metadata" / "simulation.json").is_file()
+                and any((seq / "rgb").glob("*.png")) and any((seq / "depth").glob("*"))):
+            return True
+    return False
 
 
 def _has_bpy() -> bool:
@@ -38,7 +51,7 @@ def _has_bpy() -> bool:
     return True
 
 
-NEEDS = {"run": (_has_run, f"no rendered default run in {RUN} (room run)"),
+NEEDS = {"run": (_has_run, f"no complete rendered default run in {RUN} (room run / dvc repro)"),
          "bpy": (_has_bpy, "Blender's bpy is not importable"),
          "shared": (lambda: (REPO.parent / "shared" / "data").is_dir(), "no ../shared/data")}
 
@@ -48,6 +61,7 @@ SMOKE = {
     "trajectory.py": (["--max-generation", "2"], ()),
     "phantom_vs_schmidt.py": (["--seeds", "1"], ()),
     "anatomy_speed.py": (["--sizes", "128"], ()),
+    "anatomy_trachea_aspect.py": (["--quick"], ()),
     "noise.py": (["--speed-runs", "2", "--synth-frames", "2"], ("shared",)),
     "raycast_renderer.py": (["--frames", "2", "--write-frames", "1", "--repeats", "1"], ()),
     "pose_eval.py": (["--quick", "--methods", "orb_vo", "--data", str(RUN)], ("run",)),
@@ -56,6 +70,7 @@ SMOKE = {
     "realism_speed.py": (["--inputs", str(RUN), "--frames", "1"], ("run",)),
     "write_throughput.py": (["--quick"], ("run",)),
     "simulation.py": (["--quick"], ("run",)),
+    "simulation_joint_plan.py": ([str(RUN), "--no-knobs"], ("run",)),
     "cycles_quality.py": (["--quick"], ("bpy", "run")),
     "cycles_reference.py": (["--quick"], ("bpy", "run")),
 }
@@ -67,6 +82,7 @@ NO_SMOKE = {
     "realism_indirect.py": "renders Cycles references (bpy) at hundreds of samples; no size option below minutes",
     "collision_speed.py": "simulates a real mask's route on several collision surfaces; minutes of PyBullet, no size option",
     "anatomy_memory.py": "runs the anatomy chain on a real mask up to a stage; no smaller input option",
+    "real_tree_robustness.py": "the anatomy chain on perturbed real masks: minutes per case even for one",
     "collision_corridor.py": "no size option; owned by the collision work in progress",
     "evaluation_budget.py": "times the evaluation stages on a full default run",
     "medial_axis.py": "no size option below one phantom per seed",
@@ -74,9 +90,13 @@ NO_SMOKE = {
     "navigation.py": "closed-loop episodes; no size option",
     "real_masks_chain.py": "the whole chain on every shared real mask",
     "realism.py": "needs a full default run and the real frames; no size option",
+    "realism_refit.py": "renders two default sequences several times and runs the shared judges on the real "
+                        "frames; minutes at any stride",
     "sdf_far_field.py": "a real mask at full size",
     "sdf_methods.py": "no options",
     "sequence_bytes.py": "measures a full rendered sequence on disk",
+    "disk_usage.py": "measures a finished DVC workspace (run the pipeline first)",
+    "dvc_noop.py": "times `dvc repro` in a finished DVC workspace (run the pipeline first)",
     "simcol_transfer.py": "fine-tunes the depth network on the SimCol sample; no size option",
 }
 
