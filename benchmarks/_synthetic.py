@@ -1,10 +1,19 @@
-"""Synthetic capsule trees and ground-truth rasterisation shared by the sdf / mesh benchmarks."""
+"""Synthetic capsule trees and ground-truth rasterisation shared by the sdf / mesh benchmarks, and the shared real
+airway masks the anatomy benchmarks read (paths under ``../shared/data/airway_masks``)."""
 from __future__ import annotations
 
 import numpy as np
 
 from room_pipeline.anatomy.tree import AirwayTree, Branch
 from room_pipeline.io.volume import Volume
+
+
+#: shared real airway masks: name -> path under ../shared/data/airway_masks (../shared/README.md)
+REAL_MASKS = {"medmpd_1": "medmpd/patient1/bronchialTree.nii.gz", "medmpd_2": "medmpd/patient2/bronchialTree.nii.gz",
+              "medmpd_3": "medmpd/patient3/bronchialTree.nii.gz", "airquant_demo": "airquant_demo/github_demo_seg.nii.gz",
+              "atm_001": "public_trees/axes_fixed/ATM_001_0000_fixed.nii.gz",
+              "case073": "public_trees/axes_fixed/CASE073_fixed.nii.gz",
+              "case091": "public_trees/axes_fixed/CASE091_fixed.nii.gz"}
 
 
 def capsule_tree(generations: int = 4, r0: float = 4e-3, length0: float = 30e-3, ratio: float = 0.75,

@@ -3,7 +3,7 @@
 ``bare_cast_processes``: the bare Open3D cast (``create_rays_pinhole`` + ``cast_rays``) of a list of frames
 split into contiguous halves over ``n`` processes, each with its own BVH of the same mesh, started together
 after a barrier: the floor of what ``n`` cores give a user of Open3D alone.  ``timed_render_block``: the
-render stage's ``_render_block`` returning the worker's CPU seconds (all its threads) spent on the block.
+``render.sequence.render_block`` returning the worker's CPU seconds (all its threads) spent on the block.
 """
 from __future__ import annotations
 
@@ -56,8 +56,8 @@ def bare_cast_processes(scene, frames: list[int], n: int) -> dict:
 
 
 def timed_render_block(state: dict, block: tuple[int, int]) -> tuple[list, float]:
-    """``_render_block`` and the CPU seconds this process spent on it (its writes are done when it returns)."""
-    from room_pipeline.stages.render import _render_block
+    """``render_block`` and the CPU seconds this process spent on it (its writes are done when it returns)."""
+    from room_pipeline.render.sequence import render_block as _render_block
 
     c0 = time.process_time()
     out = _render_block(state, block)

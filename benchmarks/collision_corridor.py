@@ -31,7 +31,8 @@ sys.path.insert(0, str(ROOT / "src"))
 
 from room_pipeline.io.mesh import Mesh, read_obj  # noqa: E402
 from room_pipeline.robot.kinematics import ScopeGeometry  # noqa: E402
-from room_pipeline.robot.pybullet_sim import SimParams, simulate  # noqa: E402
+from room_pipeline.robot.sim_params import SimParams  # noqa: E402
+from room_pipeline.robot.simulation import simulate  # noqa: E402
 from room_pipeline.stages.simulate import open_entrance  # noqa: E402
 
 PYBULLET_ONE_SHAPE_OK = 131_708     # ../shared/DESIGN.md: passed; 200,914 failed
@@ -45,7 +46,11 @@ def inputs(run_dir: Path, sequence: str, wall: str = "collision"):
     fr = doc["frames"]
     traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),
                                  poses=np.array([f["pose"] for f in fr]),
-                                 arclength=np.array([f["arclength"] for f in fr]))
+                                 arclength=np.array([f["arclength"] for f in fr]),
+                                 # a joint-space plan (the default trajectory.joint_plan): the shaft's path and the
+                                 # joints, as the simulate stage reads them (without them: pose IK on the camera poses)
+                                 path_poses=np.array([f["path_pose"] for f in fr]) if "path_pose" in fr[0] else None,
+                                 joints=np.array([f["q"] for f in fr]) if "q" in fr[0] else None)
     graph = json.loads((run_dir / "anatomy" / "centreline_graph.json").read_text())
     root_r = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
     mesh, _ = open_entrance(read_obj(run_dir / "anatomy" / f"{WALLS[wall]}.obj"), traj.poses[0, :3, 3],
@@ -58,7 +63,7 @@ def corridor_plus_rest(traj, mesh, params):
     left-out triangle in further bodies: against the corridor run, the only difference is the wall the corridor
     leaves out, so Bullet's sensitivity to the triangle order (a different BVH, contact order) is out of the
     comparison; a difference means the scope reached a left-out triangle."""
-    from room_pipeline.robot import pybullet_sim as ps
+    from room_pipeline.robot import pybullet_adapter as ps
 
     orig = ps.ScopeSim.set_wall
     n = np.int64(len(mesh.vertices))

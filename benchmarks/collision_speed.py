@@ -41,7 +41,8 @@ from room_pipeline.anatomy.collision import collision_surface  # noqa: E402
 from room_pipeline.anatomy.decimate import two_sided_error  # noqa: E402
 from room_pipeline.io.mesh import Mesh  # noqa: E402
 from room_pipeline.robot.kinematics import ScopeGeometry  # noqa: E402
-from room_pipeline.robot.pybullet_sim import SimParams, simulate  # noqa: E402
+from room_pipeline.robot.sim_params import SimParams  # noqa: E402
+from room_pipeline.robot.simulation import simulate  # noqa: E402
 
 
 def sim(traj, mesh: Mesh, repeats: int):

@@ -89,7 +89,8 @@ def build_scene(n: int, exposure_ev: float | None):
     from room_pipeline.io.mesh import read_obj
     from room_pipeline.render.camera import CameraIntrinsics
     from room_pipeline.render.scene import Film, Scene, TipLight, TissueMaterial
-    from room_pipeline.stages.render import RenderParams, face_labels
+    from room_pipeline.render.params import RenderParams
+    from room_pipeline.render.sequence import face_labels
 
     p = RenderParams()
     mesh = read_obj(DATA / "anatomy" / "lung_model.obj")

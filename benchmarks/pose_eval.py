@@ -6,7 +6,7 @@ method against the trivial baselines, at several frame strides, COLMAP included.
 
 DIR is a rendered run (``data/output`` after ``dvc repro``, or a copy of it; only read here).  Every
 ``DIR/<patient>/<sequence>`` with ``metadata/render.json`` is evaluated over its whole route exactly as the
-stage does (``room_pipeline.stages.evaluate_pose``: same frame loading, downscale, methods, metrics and route
+stage does (``room_pipeline.evaluate.pose_eval``: same frame loading, downscale, methods, metrics and route
 segments; the noisy frames by default), with the knobs of ``conf/evaluate/default.yaml`` except:
 
 * ``frame_stride``: the approximation knob of the stage's time budget.  Every stride tiles the whole
@@ -39,10 +39,10 @@ sys.path.insert(0, str(ROOT / "src"))
 
 from room_pipeline.anatomy.centreline import CentrelineGraph  # noqa: E402
 from room_pipeline.evaluate.allocator import keep_freed_memory  # noqa: E402
+from room_pipeline.evaluate.pose_eval import PoseEvalParams, evaluate_methods, load_sequence  # noqa: E402
 from room_pipeline.evaluate.route_segments import label_frames  # noqa: E402
 from room_pipeline.evaluate.tables import POSE_BETTER, beats  # noqa: E402
-from room_pipeline.stages.common import _finite, read_json  # noqa: E402
-from room_pipeline.stages.evaluate_pose import PoseEvalParams, evaluate_methods, load_sequence  # noqa: E402
+from room_pipeline.io.jsondoc import finite as _finite, read_json  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 METHODS = ("colmap", "sift_vo", "orb_vo")

@@ -18,7 +18,9 @@ light transport only.  The product's default RGB (per-pixel appearance) is score
 reference by its texture detail as well.
 
 References: Cycles, no adaptive sampling, no denoiser, ``--ref-bounces`` (8) bounces, shadow rays on (the
-physical light; the product's Cycles preset skips them), two halves of ``--ref-spp / 2`` samples with seeds
+physical light; the product's Cycles preset skips them), no sample clamp and no Filter Glossy (Blender's
+defaults, a clamp of 10 on bounced samples and Filter Glossy 1.0, bias it; the results before this change were
+made with them), two halves of ``--ref-spp / 2`` samples with seeds
 1000/1001 averaged in linear radiance; ``MSE_ref = MSE(a, b) / 4`` gives PSNR* (against the noise-free
 image).  Every image goes through the same film: the view's exposure metered on the reference itself (the
 render stage's rule, :func:`room_pipeline.render.shading.auto_exposure_ev` at its percentile/target), veiling
@@ -69,7 +71,8 @@ def cycles_linear(sc, normals, spp: int, bounces: int, seed: int, threads: int, 
     from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
 
     st = CyclesSettings(samples=spp, adaptive_threshold=0.0, denoise=denoise, seed=seed, exposure=0.0,
-                        max_bounces=bounces, threads=threads, cast_shadows=shadows)
+                        max_bounces=bounces, threads=threads, cast_shadows=shadows, clamp_indirect=0.0,
+                        filter_glossy=0.0)
     with CyclesRenderer(sc, st, vertex_normals=normals) as r:
         if border is not None:
             set_border(r, border)
@@ -102,7 +105,7 @@ def reference(sc, normals, name: str, args, bounces: int, spp: int, border=None)
     """Two cached halves (linear, exposure 0) of a Cycles reference."""
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
-    k = key_of(sc, spp, bounces, border, "shadows")
+    k = key_of(sc, spp, bounces, border, "shadows", "unclamped")
     halves, cpu = [], []
     for seed in (1000, 1001):
         p = cache / f"{name}_{k}_{seed}.npy"
@@ -163,6 +166,11 @@ def main() -> None:
     ap.add_argument("--tiles", action="store_true", help="score full-resolution tiles (Cycles border render) of "
                     "--res frames against a --ref-spp reference (the headline: --res 600 --ref-spp 1024)")
     ap.add_argument("--tile", type=int, default=64, help="tile side, px")
+    ap.add_argument("--grid-tiles", type=int, default=0, help="with --tiles: an N x N grid of tiles covering "
+                    "each frame uniformly (tile centres at (k + 0.5) res / N) instead of the centre and one near-wall "
+                    "tile; results realism_indirect_grid.{json,md}")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
+                    help="a render parameter over conf/render for every scene, e.g. --set 'base_color=[0.7,0.5,0.5]'")
     ap.add_argument("--speed", action="store_true", help="CPU s per frame of the default RGB with and without "
                     "the indirect light, at --res (600 for the headline), each view")
     args = ap.parse_args()
@@ -171,7 +179,8 @@ def main() -> None:
     from cycles_reference import build_scene, pick_views, render_params
     from room_pipeline.render.indirect import IndirectConfig
 
-    rp = render_params()
+    sets = {k: json.loads(v) for k, v in (x.split("=", 1) for x in args.set)}
+    rp = render_params(sets)
     scene, graph = build_scene(Path(args.inputs), args.sequence, rp, args.res)
     scene.vertex_albedo()
     views = pick_views(scene, graph)
@@ -236,12 +245,18 @@ def tile_boxes(res: int, t: int) -> list[tuple[int, int, int, int]]:
     return [(c, c + t, c, c + t), (q, q + t, q, q + t)]
 
 
+def grid_boxes(res: int, t: int, n: int) -> list[tuple[int, int, int, int]]:
+    """An n x n grid of t x t tiles (x0, x1, y0, y1) whose centres sit at (k + 0.5) res / n: a uniform sample."""
+    cs = [int(round((k + 0.5) * res / n)) - t // 2 for k in range(n)]
+    return [(x, x + t, y, y + t) for y in cs for x in cs]
+
+
 def tiles(scene, views, names, normals, args) -> None:
     """PSNR of the product's RGB (per-pixel appearance and vertex albedo, K 64, ``--ref-bounces``) on
     full-resolution tiles against a Cycles border render of ``--ref-spp`` samples (two halves)."""
     from room_pipeline.render.indirect import IndirectConfig
 
-    rp = render_params_default()
+    rp = render_params_default({k: json.loads(v) for k, v in (x.split("=", 1) for x in args.set)})
     film = scene.film
     rows = []
     for n in names:
@@ -251,7 +266,8 @@ def tiles(scene, views, names, normals, args) -> None:
         lin_v, cpu_v, _ = raycast_linear(sc, False, cfg, args.threads)
         lin_p, cpu_p, _ = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride)
         ev = metered_ev(lin_p, film)                    # the frame's exposure, metered on the product's frame
-        for box in tile_boxes(args.res, args.tile):
+        boxes = grid_boxes(args.res, args.tile, args.grid_tiles) if args.grid_tiles else tile_boxes(args.res, args.tile)
+        for box in boxes:
             x0, x1, y0, y1 = box
             a, b, meta = reference(sc, normals, f"{n}_tile{x0}_{y0}", args, args.ref_bounces, args.ref_spp,
                                    border=box)
@@ -264,12 +280,56 @@ def tiles(scene, views, names, normals, args) -> None:
                 mse = float(np.mean((x - ref8) ** 2))
                 rows.append({"view": n, "pose": i, "tile": box, "method": label, "psnr_db": psnr(mse),
                              "psnr_star_db": psnr(mse - mse_ref) if mse > mse_ref else None,
-                             "ref_psnr_db": psnr(mse_ref), "exposure_ev": ev, "ref": meta})
+                             "ref_psnr_db": psnr(mse_ref), "exposure_ev": ev, "ref": meta,
+                             "mse": mse, "mse_ref": mse_ref})
                 print(json.dumps({k: v for k, v in rows[-1].items() if k != "ref"}), flush=True)
     doc = {"args": vars(args), "views": views, "rows": rows, "load_avg": os.getloadavg()}
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if args.grid_tiles:
+        pooled = []
+        for n in names:
+            for label in sorted({r["method"] for r in rows}):
+                rs = [r for r in rows if r["view"] == n and r["method"] == label]
+                mse, mref = float(np.mean([r["mse"] for r in rs])), float(np.mean([r["mse_ref"] for r in rs]))
+                pooled.append({"view": n, "pose": views[n], "method": label, "tiles": len(rs),
+                               "pixels": len(rs) * args.tile ** 2, "psnr_db": psnr(mse),
+                               "psnr_star_db": psnr(mse - mref) if mse > mref else None, "ref_psnr_db": psnr(mref),
+                               "worst_tile_psnr_db": min(r["psnr_db"] for r in rs),
+                               "ref_cpu_s": sum(sum(r["ref"]["cpu_s_halves"]) for r in rs)})
+        doc["pooled"] = pooled
+        (RESULTS / f"{args.out}_grid.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+        write_grid_md(args.out)
+        return
     (RESULTS / f"{args.out}_tiles.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
     write_md(args.out)
+
+
+def write_grid_md(out: str = "realism_indirect") -> None:
+    d = json.loads((RESULTS / f"{out}_grid.json").read_text())
+    a = d["args"]
+    n, t, res = a["grid_tiles"], a["tile"], a["res"]
+    cover = n * n * t * t / res ** 2
+    L = [f"# Ray caster + inter-reflection vs a {a['ref_spp']}-spp Cycles reference: a {n}x{n} grid of tiles over "
+         f"whole {res}x{res} frames", "",
+         f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {res} --ref-spp {a['ref_spp']} --tiles "
+         f"--grid-tiles {n} --tile {t}`: in each view, {n * n} tiles of {t}x{t} px whose centres sit on a uniform "
+         f"{n}x{n} grid ((k + 0.5) x {res} / {n} px), {100 * cover:.1f} % of the frame's pixels, rendered by Cycles "
+         f"(border render of the full {res}x{res} frame: the same camera, same light; {a['ref_bounces']} bounces, "
+         "shadow rays, no clamp, no Filter Glossy, two seeds of half the samples each) and compared with the same "
+         "pixels of the ray caster's full frame (K 64 rays per vertex, the render stage's config). Same mesh on "
+         "both sides; 'vertex albedo' = the appearance baked at the vertices on both sides (the light transport "
+         "alone); 'per-pixel appearance' = the product's texture, which Cycles can only see baked at the vertices. "
+         "Pooled = PSNR of the mean MSE over the tiles; PSNR* removes the reference's own noise (MSE(a, b) / 4). "
+         f"The exposure is metered on the product's full frame. Load average {d['load_avg'][0]:.1f}.", "",
+         "| view (pose) | method | tiles (px) | pooled PSNR dB | pooled PSNR* dB | worst tile PSNR dB | reference's own "
+         "PSNR dB | reference CPU s |", "|---|---|---|---|---|---|---|---|"]
+    for r in d["pooled"]:
+        ps = "" if r["psnr_star_db"] is None else f"{r['psnr_star_db']:.2f}"
+        L.append(f"| {r['view']} ({r['pose']}) | {r['method']} | {r['tiles']} ({r['pixels']}) | {r['psnr_db']:.2f} | "
+                 f"{ps} | {r['worst_tile_psnr_db']:.2f} | {r['ref_psnr_db']:.1f} | {r['ref_cpu_s']:.0f} |")
+    L += ["", "Per tile: `benchmarks/results/" + out + "_grid.json`."]
+    (RESULTS / f"{out}_grid.md").write_text("\n".join(L) + "\n")
+    print("\n".join(L))
 
 
 def speed(scene, views, names, args) -> None:
@@ -317,10 +377,10 @@ def speed(scene, views, names, args) -> None:
     write_md(args.out)
 
 
-def render_params_default():
+def render_params_default(sets: dict | None = None):
     from cycles_reference import render_params
 
-    return render_params()
+    return render_params(sets)
 
 
 

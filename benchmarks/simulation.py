@@ -1,4 +1,4 @@
-"""Benchmark of the PyBullet scope simulation (room_pipeline.robot.pybullet_sim).
+"""Benchmark of the PyBullet scope simulation (room_pipeline.robot.simulation and its PyBullet adapter).
 
     .venv/bin/python benchmarks/simulation.py [--quick]
     .venv/bin/python benchmarks/simulation.py --physical-reference OUTPUT_DIR [OUTPUT_DIR ...]
@@ -56,7 +56,9 @@ from room_pipeline.anatomy.mesh import MeshParams, extract_surface  # noqa: E402
 from room_pipeline.anatomy.phantom import PhantomParams, grow_tree  # noqa: E402
 from room_pipeline.planning.trajectory import TrajectoryParams, plan_path  # noqa: E402
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY as G, fk  # noqa: E402
-from room_pipeline.robot.pybullet_sim import SimParams, contact_probe, settle_free, simulate  # noqa: E402
+from room_pipeline.robot.probes import contact_probe, settle_free  # noqa: E402
+from room_pipeline.robot.sim_params import SimParams  # noqa: E402
+from room_pipeline.robot.simulation import simulate  # noqa: E402
 
 MM = 1e-3
 
@@ -259,7 +261,7 @@ def physical_reference(roots: list[Path], quick: bool = False, reference: dict |
                        repeats: int = 1, checks: bool = False) -> dict:
     """Section 8: every option against the physical-mass, 1 ms-step reference of the same sequence
     (or ``reference`` / ``options``: the converged-reference variant, ``--converged-reference``)."""
-    from room_pipeline.robot.pybullet_sim import friction_probe
+    from room_pipeline.robot.probes import friction_probe
 
     ref_kw = PHYS_REF if reference is None else reference
     opts = PHYS_OPTIONS if options is None else options
@@ -475,7 +477,7 @@ def reachability(dirs: list[str]) -> None:
     planned route as ``insertion_model: kinematic`` holds it.  Its error is what no dynamics can remove.
     Writes benchmarks/results/simulation_reachability.{json,md}."""
     from room_pipeline.robot.controller import IKController, _shift
-    from room_pipeline.robot.pybullet_sim import Route
+    from room_pipeline.robot.route import Route
 
     roots = [r for d in dirs for r in sorted(Path(d).glob("patient_*")) if r.is_dir()]
     prm = SimParams()
@@ -583,6 +585,7 @@ def plan_tracking(dirs: list[str]) -> None:
                          "tracking_error_mm": r["tracking_error_mm"], "tracking_error_deg": r["tracking_error_deg"],
                          "camera_roll_straight_stretch_max_deg": r["camera_roll_deg"]["straight_stretch_change_max"],
                          "contact_force_n_max": r["contact_force_n"]["max"], "penetration_mm_max": r["penetration_mm"]["max"],
+                         "frames_in_contact": r["contact_force_n"].get("frames_in_contact"), "frames": r.get("frames"),
                          "command": r.get("command"), "time_step_s": r["time_step_s"]})
     res = ROOT / "benchmarks" / "results"
     res.mkdir(parents=True, exist_ok=True)
@@ -592,21 +595,25 @@ def plan_tracking(dirs: list[str]) -> None:
           "planned camera poses are the forward kinematics of q(t), and simulate commands q(t) "
           "(`simulate.track: joints`), so simulated vs planned is the dynamics, contact and actuation (delay, gain).  "
           "Bounds (issue #17): median <= 1.0 mm, max <= 2.5 mm, view median <= 2 deg; straight-stretch roll <= 1 deg.  "
-          "Command: `room stage trajectory|simulate --patient P/sequence_000 output_dir=DIR` for each patient, then "
+          "The plan is one whole-sequence solve with a hard roll hold (q2 changes only between frames bent >= 5 % of "
+          "q1_max).  Command: `room stage trajectory|simulate --patient P/sequence_000 output_dir=DIR` for each patient, then "
           "`python benchmarks/simulation.py --plan-tracking " + " ".join(dirs) + "`", "",
           "| sequence | sim vs plan: position median / max mm | view median / max deg | straight-stretch roll deg | "
-          "contact max N | plan vs path: position median / p95 / max mm | view median / p95 / max deg | plan roll vs "
-          "path, straight stretch deg | plan body clearance deficit max mm |",
-          "|---|---|---|---|---|---|---|---|---|"]
+          "contact max N | frames in contact | plan vs path: position median / p95 / max mm | view median / p95 / max deg | "
+          "plan end: to the path's end / short of it mm | plan roll vs path, straight stretch deg | plan body clearance "
+          "deficit max mm |",
+          "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         jp = r["joint_plan"] or {}
         dp, dv = jp.get("departure_from_path_mm", {}), jp.get("view_departure_from_path_deg", {})
         f2 = lambda x: "-" if x is None else f"{x:.2f}"
         md.append(f"| {r['sequence']} | {r['tracking_error_mm']['median']:.2f} / {r['tracking_error_mm']['max']:.2f} | "
                   f"{r['tracking_error_deg']['median']:.2f} / {r['tracking_error_deg']['max']:.2f} | "
-                  f"{r['camera_roll_straight_stretch_max_deg']:.2f} | {r['contact_force_n_max']:.3f} | "
+                  f"{r['camera_roll_straight_stretch_max_deg']:.3f} | {r['contact_force_n_max']:.3f} | "
+                  f"{r.get('frames_in_contact', '-')} / {r.get('frames', '-')} | "
                   f"{f2(dp.get('median'))} / {f2(dp.get('p95'))} / {f2(dp.get('max'))} | "
                   f"{f2(dv.get('median'))} / {f2(dv.get('p95'))} / {f2(dv.get('max'))} | "
+                  f"{f2(jp.get('end', {}).get('departure_mm'))} / {f2(jp.get('end', {}).get('short_of_path_end_mm'))} | "
                   f"{f2(jp.get('roll_vs_path_deg', {}).get('straight_stretch_change_max'))} | "
                   f"{f2(jp.get('body_clearance_deficit_max_mm'))} |")
     (res / "simulation_plan_tracking.md").write_text("\n".join(md) + "\n")

@@ -25,7 +25,7 @@ path.  Camera: the render config's default (600x600, 85 deg).
    of every pixel on the renderer's own BVH, hit distances fetched: what a user
    of Open3D alone gets) in one process and in one process per usable core (the
    same cores the stage uses), and the render stage's own fan-out
-   (``_frame_worker`` + ``_render_block`` on the executor: render, encode,
+   (``frame_worker`` + ``render_block`` on the executor: render, encode,
    write) for the geometric modalities (depth, relative depth, normals, flow +
    validity, segmentation) with the default storage, with its default execution
    (``workers: 0`` resolved for the sequence: one process per core) and with one
@@ -64,6 +64,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from room_pipeline.catalog import RENDER_FOLDERS  # noqa: E402
 from room_pipeline.io.atomic import write_json  # noqa: E402
 from room_pipeline.io.images import (read_exr, read_flo, read_png, write_exr, write_flo, write_png8,  # noqa: E402
                                      write_png16)
@@ -93,7 +94,7 @@ def load_inputs(args):
     """(mesh, face labels, legend, poses, timestamps, description)."""
     from room_pipeline.anatomy.centreline import CentrelineGraph
     from room_pipeline.io.mesh import read_obj
-    from room_pipeline.stages.render import face_labels
+    from room_pipeline.render.sequence import face_labels
 
     pat = Path(args.data) / "patient_000"
     sim = pat / "sequence_000" / "metadata" / "simulation.json"
@@ -119,7 +120,7 @@ def make_scene(mesh, labels, poses, ts):
     from room_pipeline.config.compose import section
     from room_pipeline.render.camera import CameraIntrinsics
     from room_pipeline.render.scene import Film, Scene, TipLight, TissueMaterial
-    from room_pipeline.stages.render import RenderParams, texture_params
+    from room_pipeline.render.params import RenderParams, texture_params
 
     cfg = OmegaConf.load(ROOT / "params.yaml")
     p = RenderParams.from_dict(section(cfg, "render"))
@@ -339,22 +340,22 @@ def rates(runs: list[dict]) -> list[dict]:
 def stage_path(scene, p, seq: Path, mods, storage: dict, frames: list[int], label: str, ev: float,
                rss_every: int = 0) -> dict:
     """The render stage's per-frame path (worker state, blocks, writer) over ``frames``."""
-    from room_pipeline.stages import render as rs
+    from room_pipeline.render import sequence as rs
 
     p2 = dataclasses.replace(p, modalities=tuple(mods), storage={**p.storage, **storage})
     st = StorageParams.from_dict(p2.storage)
     scene.film = dataclasses.replace(scene.film, exposure_ev=ev)
     src = np.arange(len(scene.poses))
-    state = rs._frame_worker(scene, p2, str(seq), src, scene.timestamps, scene.poses, 0, None, 0)
-    for f in rs.FOLDERS.values():
+    state = rs.frame_worker(scene, p2, str(seq), src, scene.timestamps, scene.poses, 0, None, 0)
+    for f in RENDER_FOLDERS.values():
         (seq / f).mkdir(parents=True, exist_ok=True)
     last = len(scene.poses) - 1                                    # warm-up (normal tables, threads) on a frame
-    rs._render_block(state, (last, last + 1))                      # outside the run: no cast of the run cached
+    rs.render_block(state, (last, last + 1))                      # outside the run: no cast of the run cached
     rss = []
     c0, w0 = cpu_s(), time.perf_counter()
     start, stop = frames[0], frames[-1] + 1
     for b0 in range(start, stop, st.write_block):
-        rs._render_block(state, (b0, min(b0 + st.write_block, stop)))
+        rs.render_block(state, (b0, min(b0 + st.write_block, stop)))
         if rss_every and (b0 - start) % rss_every < st.write_block:
             rss.append((b0 - start, round(rss_mb(), 1)))
     wall, cpu = time.perf_counter() - w0, cpu_s() - c0
@@ -382,7 +383,7 @@ def stage_workers(scene, p, seq: Path, mods, storage: dict, frames: list[int], l
     from _throughput_parallel import timed_render_block
 
     from room_pipeline.execution import ExecutionParams, make_executor
-    from room_pipeline.stages import render as rs
+    from room_pipeline.render import sequence as rs
 
     p2 = dataclasses.replace(p, modalities=tuple(mods), storage={**p.storage, **storage})
     st = StorageParams.from_dict(p2.storage)
@@ -391,9 +392,9 @@ def stage_workers(scene, p, seq: Path, mods, storage: dict, frames: list[int], l
     ex_params = ExecutionParams(backend="local" if workers > 1 else "serial", workers=workers)
     parallel = workers > 1
     nthreads = ex_params.threads if parallel else 0
-    for f in rs.FOLDERS.values():
+    for f in RENDER_FOLDERS.values():
         (seq / f).mkdir(parents=True, exist_ok=True)
-    init = (rs._frame_worker, (scene, p2, str(seq), src, scene.timestamps, scene.poses, nthreads, None, nthreads))
+    init = (rs.frame_worker, (scene, p2, str(seq), src, scene.timestamps, scene.poses, nthreads, None, nthreads))
     start, stop = frames[0], frames[-1] + 1
     block = st.write_block if not parallel else max(1, min(st.write_block, -(-len(frames) // (4 * workers))))
     last = len(scene.poses) - 1
@@ -439,7 +440,7 @@ def main() -> None:
     from room_pipeline.noise.synthesize import add_noise
     from room_pipeline.render.raycast import RaycastRenderer
     from room_pipeline.stages.noise import NoiseParams, frame_seed, resolve_profile
-    from room_pipeline.stages.render import _Renderers
+    from room_pipeline.render.sequence import Renderers as _Renderers
 
     load0 = os.getloadavg()
     mesh, labels, poses, ts, info = load_inputs(args)

@@ -15,6 +15,17 @@ try:
 except ImportError:
     pass
 
+# Hypothesis draws new examples on every run unless told not to; under CI (CI=true) it derandomises, so a
+# clean-clone run is reproducible.  A developer's run stays random and can still find new counter-examples.
+try:
+    from hypothesis import settings as _hyp_settings
+
+    _hyp_settings.register_profile("ci", derandomize=True)
+    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        _hyp_settings.load_profile("ci")
+except ImportError:
+    pass
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ROOM_SHARED_DATA", REPO.parent / "shared" / "data"))
 

@@ -71,14 +71,14 @@ def test_a_distortion_that_folds_the_image_is_refused(coeffs):
     cam = CameraIntrinsics.from_fov(600, 600, 85.0, distortion=coeffs)
     with pytest.raises(ValueError):
         cam.check_distortion()
-    from room_pipeline.stages.render import RenderParams
+    from room_pipeline.render.params import RenderParams
 
     with pytest.raises(ConfigError, match="render.distortion"):
         RenderParams.from_dict({"distortion": list(coeffs)})
 
 
 def test_render_config_distortion_reaches_the_camera_and_cycles_refuses_it():
-    from room_pipeline.stages.render import RenderParams, camera_of
+    from room_pipeline.render.params import RenderParams, camera_of
 
     p = RenderParams.from_dict({"distortion": list(PUBLISHED)})
     cam = camera_of(p)

@@ -52,9 +52,7 @@ def test_layout_names_are_spelled_only_in_the_catalogue():
                 found.append(f"{p.relative_to(SRC)}: {n}")
         if '"rgb_noisy"' in code:
             found.append(f"{p.relative_to(SRC)}: rgb_noisy")
-    # known: the frame writer (io storage work in progress) spells two folders itself
-    known = {"stages/render.py: surface_normals", "stages/render.py: optical_flow"}
-    assert set(found) <= known, sorted(set(found) - known)
+    assert not found, sorted(found)
 
 
 def _doc(key, n=3, arc=True):

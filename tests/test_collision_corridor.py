@@ -13,7 +13,10 @@ import pytest
 from room_pipeline.errors import ConfigError
 from room_pipeline.io.mesh import Mesh
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY as G
-from room_pipeline.robot.pybullet_sim import ScopeSim, SimParams, route_corridor, simulate, split_faces
+from room_pipeline.robot.pybullet_adapter import ScopeSim
+from room_pipeline.robot.sim_params import SimParams
+from room_pipeline.robot.simulation import simulate
+from room_pipeline.robot.wall import route_corridor, split_faces
 
 from .test_simulation import phantom, straight_trajectory, tube  # noqa: F401  (fixture)
 

@@ -502,7 +502,7 @@ def test_train_depth_without_torch(tmp_path, monkeypatch):
 
 
 def test_split_indices():
-    from room_pipeline.stages.train_depth import split_indices
+    from room_pipeline.depth.finetune import split_indices
 
     tr, ho = split_indices(100, 0.2, 10, 1, 5)
     assert tr == list(range(70)) and ho == [80, 85, 90, 95]

@@ -617,7 +617,7 @@ def test_render_stage_bytes_do_not_depend_on_the_executor(rendered_serial, tmp_p
 def test_render_stage_execution_params():
     from omegaconf import OmegaConf
 
-    from room_pipeline.stages.render import execution_params
+    from room_pipeline.render.sequence import execution_params
 
     assert execution_params(OmegaConf.create({}), frames=8).backend == "serial"   # no section, few frames: in-process
     assert execution_params(OmegaConf.create({"execution": {"backend": "local", "workers": 1}})).backend == "serial"
@@ -641,7 +641,7 @@ def test_render_stage_execution_params():
 def test_render_stage_cycles_bytes_do_not_depend_on_the_executor(tmp_path):
     """Cycles RGB (exposure chosen once in the driver, Cycles threads = cores / workers) in worker processes.
 
-    The driver imported bpy first: a spawned worker must still import it (see render._drop_inherited_bpy_paths).
+    The driver imported bpy first: a spawned worker must still import it (see room_pipeline.render.sequence.drop_inherited_bpy_paths).
     """
     pytest.importorskip("bpy")
     from tests.test_dataset import FOV, render_sequence

@@ -132,3 +132,56 @@ if __name__ == "__main__":
     g = import_graph()
     print("cycles:", cycles(g))
     print("upward:", sorted(upward(g)))
+
+
+def _importers_of(pattern: str) -> list[str]:
+    import re
+
+    return sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py")
+                  if re.search(pattern, p.read_text(encoding="utf-8"), re.M))
+
+
+def test_pybullet_is_imported_by_its_adapter_only():
+    assert _importers_of(r"^\s*(import pybullet|from pybullet)") == ["robot/pybullet_adapter.py"]
+
+
+def test_config_route_and_report_load_without_pybullet():
+    """The simulation's parameters, its route and the HTML report import with PyBullet unavailable."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['pybullet'] = None\n"
+            "import room_pipeline.robot.sim_params, room_pipeline.robot.route, room_pipeline.robot.wall\n"
+            "import room_pipeline.config.validate, room_pipeline.report, room_pipeline.report.scene\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={
+        **__import__("os").environ, "PYTHONPATH": str(SRC.parent)})
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
+#: modules over 500 lines whose owners are stating their reason in parallel work (#14, #15, #18): delete an
+#: entry once its module says why (or is split); the list only shrinks
+PENDING_OVER_500: set[str] = set()
+
+
+def _over_500() -> dict[str, bool]:
+    """Module (relative to the package) -> whether its docstring has a line starting 'Over 500 lines because'."""
+    out = {}
+    for p in sorted(SRC.rglob("*.py")):
+        text = p.read_text(encoding="utf-8")
+        if len(text.splitlines()) <= 500:
+            continue
+        doc = ast.get_docstring(ast.parse(text)) or ""
+        out[str(p.relative_to(SRC))] = any(line.strip().startswith("Over 500 lines because")
+                                           for line in doc.splitlines())
+    return out
+
+
+def test_modules_over_500_lines_state_why():
+    unexplained = sorted(m for m, ok in _over_500().items() if not ok and m not in PENDING_OVER_500)
+    assert unexplained == [], f"over 500 lines without an 'Over 500 lines because ...' docstring line: {unexplained}"
+
+
+def test_pending_over_500_list_is_current():
+    big = _over_500()
+    stale = sorted(m for m in PENDING_OVER_500 if big.get(m, True))
+    assert stale == [], f"now split or explained: delete from PENDING_OVER_500: {stale}"

@@ -12,8 +12,9 @@ from scipy.integrate import solve_ivp
 
 from room_pipeline.errors import ConfigError
 from room_pipeline.robot import kinematics as K
-from room_pipeline.robot.kinematics import (DEFAULT_GEOMETRY as G, IKResult, ScopeGeometry, clamp_q,
-                                            fk, ik, jacobian, kappa)
+from room_pipeline.robot.inverse_kinematics import IKResult, ik
+from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY as G
+from room_pipeline.robot.kinematics import ScopeGeometry, clamp_q, fk, jacobian, kappa
 
 EPS = np.finfo(float).eps
 SPECIAL_Q1 = [0.0, 1e-12, -1e-12, 1e-6, -1e-6, G.q1_max, -G.q1_max]

@@ -388,25 +388,145 @@ def test_root_inside_the_volume_when_the_trachea_is_cut_by_its_border(tilt_deg):
     assert len(g.branches) >= 3 and len(g.children(g.root.id)) >= 2   # (the tilted tube's flat end leaves a ledge)
 
 
-@pytest.mark.parametrize("top", [pytest.param(-32.0, marks=pytest.mark.xfail(
-    strict=True, reason="known limit: 8 mm of trachea (radius 5-7 mm): the most superior wide point's two arms "
-    "are the main bronchi, so it is taken for mid-tube and re-rooted at a bronchus's end (main before issue "
-    "#18's round 6 did the same)")), -25.0])
-def test_root_when_the_scan_is_cut_just_above_the_carina(top):
-    """Issue #18 item 2: a short trachea, the scan cut 8 or 15 mm above the carina (z = -40): the route still
-    starts at the cut, in the middle of the trachea, and the trachea is the root branch with both main bronchi
-    as its children."""
-    vol = _border_cut_tree_mask(0.0, top=top)
+CUTS = [0.0, -20.0, -30.0, -32.0, -35.0, -38.0]       # 40, 20, 10, 8, 5, 2 mm above the carina (z = -40)
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 25.0])
+@pytest.mark.parametrize("top", CUTS)
+def test_root_when_the_scan_is_cut_just_above_the_carina(top, tilt_deg):
+    """Issue #18 item 2: the scan cut 40 mm down to 2 mm above the carina (z = -40), the trachea upright or
+    leaning 25 deg: the route starts at the cut, in the middle of the trachea, and both main bronchi hang
+    below the trachea's first bifurcation.  Within ~10 mm of the carina the skeleton divides at the cut (two
+    downward arms); that is read as a bifurcation at the entry: a short root branch from the middle of the cut
+    cross-section to where the arms part, both main bronchi its children (``root_entry_bifurcation``)."""
+    vol = _border_cut_tree_mask(tilt_deg, top=top)
     res = extract_medial_axis(compute_sdf(vol, SdfParams()), MedialAxisParams())
     g = res.graph
     check_tree(g)
+    rep = {k: v for k, v in res.report.items() if k.startswith("root")}
     zt = vol.index_to_world(np.array([[0.0, 0.0, vol.shape[2] - 1.0]]))[0, 2]
-    assert g.root.points[0][2] > zt - 3 * MM, res.report
-    assert np.hypot(g.root.points[0][0], g.root.points[0][1]) < 2 * MM, res.report
-    assert g.root.length > 0.5 * (top + 40) * MM
-    assert len(g.children(g.root.id)) >= 2
-    kids = g.children(g.root.id)
-    assert sorted(np.sign(b.points[-1][0]) for b in kids if b.length > 20 * MM) == [-1.0, 1.0]
+    axis_x = np.tan(np.deg2rad(tilt_deg)) * (zt + 40 * MM)
+    assert g.root.points[0][2] > zt - 3 * MM, rep
+    assert abs(g.root.points[0][0] - axis_x) < 2 * MM and abs(g.root.points[0][1]) < 2 * MM, rep
+    # the two main bronchi (ends at x = +-19.7 mm, z = -69.7 mm) part below the cut by at least half the
+    # trachea left, and not below the carina's ridge (where the bronchi's lumens separate, z = -46.6 mm)
+    ends = {int(np.sign(b.points[-1][0])): b.id for b in g.leaves() if b.points[-1][2] < -60 * MM}
+    assert sorted(ends) == [-1, 1], [(b.id, b.parent, (b.points[-1] / MM).round(1).tolist()) for b in g.branches]
+    left, right = g.path_to(ends[-1]), g.path_to(ends[1])
+    common = [a.id for a, b in zip(left, right) if a.id == b.id]
+    node = g.branch(common[-1]).points[-1]
+    assert zt - node[2] > 0.5 * (top + 40) * MM and node[2] > -46.6 * MM, (node / MM, rep)
+    if rep["root_entry_bifurcation"]:
+        assert len(common) == 1 and len(g.children(g.root.id)) == 2, rep      # both bronchi: the root's children
+        assert rep["root_stub_mm"] == pytest.approx(g.root.length / MM, rel=0.05, abs=0.5)
+    if top >= -20.0:
+        assert rep["root_entry_bifurcation"] is False                        # a trachea long enough for its own
+    if top <= -32.0:
+        assert rep["root_entry_bifurcation"] is True                         # an 8 mm or shorter stub
+
+
+def test_start_offset_on_a_trachea_cut_just_above_the_carina():
+    """Issue #18: the default ``trajectory.start_offset_mm`` (10 mm) is longer than the stub trachea of a scan
+    cut 2 mm above the carina.  The rule (planning/trajectory.py ``_start``): an offset of half the root or
+    more is clipped to half the root branch, noted in the trajectory's ``start``; the route starts inside the
+    trachea stub, on its way to either main bronchus."""
+    from room_pipeline.planning.trajectory import TrajectoryParams, plan_path
+
+    vol = _border_cut_tree_mask(0.0, top=-38.0)
+    sdf = compute_sdf(vol, SdfParams())
+    g = extract_medial_axis(sdf, MedialAxisParams()).graph
+    assert g.root.length < 10 * MM
+    leaf = max(g.leaves(), key=lambda b: b.length)
+    traj = plan_path(g, leaf.id, sdf, TrajectoryParams())
+    assert traj.start["offset_mm"] == pytest.approx(0.5 * g.root.length / MM, abs=1e-6)
+    assert "clipped" in traj.start["note"] and "root branch (trachea)" in traj.start["note"]
+    p0 = traj.positions[0]
+    assert np.min(np.linalg.norm(g.root.points - p0, axis=1)) < 1 * MM        # starts in the stub trachea
+
+
+@pytest.mark.parametrize("top", [-46.0, -47.0])
+def test_no_trachea_when_the_scan_is_cut_at_the_carina(top):
+    """Issue #18 item 2: cut through the carina's ridge (z = -46.6) the top cross-section opens into both main
+    bronchi: no trachea-like root, one clear error (not a route that starts at a bronchus's end)."""
+    vol = _border_cut_tree_mask(0.0, top=top)
+    with pytest.raises(InputError, match="no trachea-like root.*top cut.*carina"):
+        extract_medial_axis(compute_sdf(vol, SdfParams()), MedialAxisParams())
+
+
+_REAL_REF: dict = {}
+
+
+def _real_reference(parts):
+    """A shared real mask (largest component) and its full centreline graph (the reference trachea/carina)."""
+    from room_pipeline.anatomy.segment import validate_mask
+
+    if parts not in _REAL_REF:
+        mask = validate_mask(read_volume(shared_path(*parts)))
+        g = extract_medial_axis(compute_sdf(crop_to_interior(mask, 6), SdfParams())).graph
+        _REAL_REF[parts] = (mask, g)
+    return _REAL_REF[parts]
+
+
+def _crop_above(vol: Volume, z: float) -> Volume:
+    """The scan cut at world height ``z``: the array's slices above it removed (the header's origin moved)."""
+    ax = int(np.argmax(np.abs(vol.affine[2, :3])))
+    idx = np.zeros((vol.shape[ax], 3))
+    idx[:, ax] = np.arange(vol.shape[ax])
+    keep = np.flatnonzero(vol.index_to_world(idx)[:, 2] <= z)
+    sl = [slice(None)] * 3
+    sl[ax] = slice(int(keep[0]), int(keep[-1]) + 1)
+    lo = np.zeros((1, 3))
+    lo[0, ax] = keep[0]
+    aff = vol.affine.copy()
+    aff[:3, 3] = vol.index_to_world(lo)[0]
+    return Volume(np.ascontiguousarray(vol.data[tuple(sl)]), aff)
+
+
+#: real-mask cuts that miss, measured by the fresh-clone CI of session 7 (issue #18, not yet explained): the
+#: first bifurcation placed 12.4 mm from the full mask's carina (Med-MPD 3 cut 10 mm above; bound 10 mm),
+#: 12.5 mm (AirQuant, 10 mm; bound 10 mm); AirQuant cut 40 mm above: the route starts 5.9 mm from the full
+#: mask's trachea centreline (bound 3 mm)
+KNOWN_CUT_LIMITS = {
+    ("patient3", 10.0): "known limit (issue #18): Med-MPD 3 cut 10 mm above the carina, first bifurcation 12.4 mm "
+                        "from the full mask's carina (bound 10 mm)",
+    ("airquant", 10.0): "known limit (issue #18): AirQuant cut 10 mm above the carina, first bifurcation 12.5 mm "
+                        "from the full mask's carina (bound 10 mm)",
+    ("airquant", 40.0): "known limit (issue #18): AirQuant cut 40 mm above the carina, the route starts 5.9 mm from "
+                        "the full mask's trachea centreline (bound 3 mm)",
+}
+
+
+@pytest.mark.shared
+@pytest.mark.slow
+@pytest.mark.parametrize("above_mm", [40.0, 10.0] + [pytest.param(h, marks=pytest.mark.xfail(
+    strict=False, reason="known limit (issue #18 round 7): cut 5 / 2 mm above the carina, the entry is on the "
+    "trachea's centreline but the first bifurcation is placed 12.2 / 9.3 mm below the full mask's (Med-MPD 1; "
+    "AirQuant 10 mm cut: 12.5 mm); not yet explained")) for h in (5.0, 2.0)])
+@pytest.mark.parametrize("parts", REAL, ids=lambda p: p[-2] if p[-2] != "airquant_demo" else "airquant")
+def test_real_mask_cut_above_the_carina(parts, above_mm, request):
+    """Issue #18 item 2 on real trees: each shared real mask's array cut 40 / 10 / 5 / 2 mm above its carina
+    (the reference: the full mask's first bifurcation): the route still starts at the cut on the trachea's
+    centreline, and the root ends at the carina with the main bronchi below it."""
+    from room_pipeline.anatomy.segment import validate_mask
+
+    name = parts[-2] if parts[-2] != "airquant_demo" else "airquant"
+    if (name, above_mm) in KNOWN_CUT_LIMITS:
+        request.applymarker(pytest.mark.xfail(strict=False, reason=KNOWN_CUT_LIMITS[(name, above_mm)]))
+
+    mask, ref = _real_reference(parts)
+    carina = ref.root.points[-1]
+    cut = validate_mask(_crop_above(mask, carina[2] + above_mm * MM))
+    res = extract_medial_axis(compute_sdf(crop_to_interior(cut, 6), SdfParams()))
+    g = res.graph
+    check_tree(g)
+    rep = {k: v for k, v in res.report.items() if k.startswith("root")}
+    ztop = cut.index_to_world(np.argwhere(cut.data > 0).astype(float))[:, 2].max()
+    start, end = g.root.points[0], g.root.points[-1]
+    assert start[2] > ztop - 3 * MM, rep                                   # at the cut ...
+    tr = ref.root.points
+    assert np.min(np.linalg.norm(tr - start, axis=1)) < 3 * MM, rep       # ... on the trachea's centreline
+    assert np.linalg.norm(end - carina) < 5 * MM + 0.5 * above_mm * MM, (end / MM, carina / MM, rep)
+    assert len(g.children(g.root.id)) >= 2 and len(g.branches) >= 15
 
 
 @pytest.mark.parametrize("n_islands", [10, 90])
@@ -487,6 +607,25 @@ def test_root_is_the_flattened_tracheas_cut_end(case):
     p = g.root.points[g.root.points[:, 2] > -35 * MM]
     assert np.abs(p[:, 0] - np.tan(np.deg2rad(tilt)) * (p[:, 2] + 45 * MM)).max() < 2 * MM
     assert np.abs(p[:, 1]).max() < 2 * MM
+
+
+@pytest.mark.parametrize("case,expected", [("round r6", 1.0), ("16x14", 8 / 7), ("20x12", 10 / 6), ("24x10", 12 / 5),
+                                           ("16x14_tilted_20deg", 8 * np.cos(np.deg2rad(20)) / 7),
+                                           ("20x12_tilted_20deg", 10 * np.cos(np.deg2rad(20)) / 6)])
+def test_flattened_trachea_switch_measures_the_cross_section(case, expected):
+    """Issue #18: the flattened-trachea switch is the lumen's cross-section aspect ratio normal to the trachea's
+    axis (``FLAT_ASPECT``), not the medial points' spread.  The synthetic tracheas are elliptic in horizontal
+    slices, so leaning 20 deg along the long axis their normal section is cos(20) shorter along it.  Round and
+    16x14 mm stay round (no centring), 20x12 and 24x10 mm switch, with the margins of
+    benchmarks/results/anatomy_trachea_aspect.md."""
+    from room_pipeline.anatomy.medial_axis import FLAT_ASPECT
+
+    name, _, tilt = case.partition("_tilted_")
+    hx, hy = {"round r6": (6.0, 6.0), "16x14": (8.0, 7.0), "20x12": (10.0, 6.0), "24x10": (12.0, 5.0)}[name]
+    vol = _flat_trachea_mask(hx, hy, float(tilt[:-3]) if tilt else 0.0)
+    rep = extract_medial_axis(compute_sdf(vol, SdfParams()), MedialAxisParams()).report
+    assert rep["trachea_aspect_ratio"] == pytest.approx(max(expected, 1 / expected), rel=0.06), rep
+    assert rep["root_centred"] is bool(max(expected, 1 / expected) > FLAT_ASPECT)
 
 
 def test_root_arms_tell_a_parallel_line_from_a_way_out():

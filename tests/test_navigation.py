@@ -23,7 +23,7 @@ from room_pipeline.navigation.perception import back_project, median_scale
 from room_pipeline.navigation.planner import PlannerParams, choose_goal, plan_path
 from room_pipeline.render.camera import CameraIntrinsics
 from room_pipeline.robot.kinematics import ScopeGeometry, fk
-from room_pipeline.robot.pybullet_sim import SimParams
+from room_pipeline.robot.sim_params import SimParams
 
 KMAX = ScopeGeometry().kappa_max
 

@@ -475,10 +475,14 @@ def test_evaluate_pose_and_tables_stages(tmp_path, textured):
         assert rows[1][-1].startswith("not run") and all(r[-1] == "not run here (paper only)" for r in rows[2:])
     met = json.loads((rep / "metrics.json").read_text())
     assert met["table_1_pose"]["colmap"]["RRA@5"] == 1.0 and met["inputs"]["pose_json"] == 1
-    before = {f.name: f.read_bytes() for f in rep.iterdir() if f.name.endswith((".md", ".tex", ".csv"))}
+    # the DVC metric holds no timings (they go to metrics.timing.json, an uncached out): same inputs -> same bytes
+    assert "seconds_per_frame" in json.loads((rep / "metrics.timing.json").read_text())["table_1_pose"]["colmap"]
+    assert not {"seconds_per_frame", "cpu_seconds_per_frame"} & set(met["table_1_pose"]["colmap"])
+    before = {f.name: f.read_bytes() for f in rep.iterdir() if f.name.endswith((".md", ".tex", ".csv", "metrics.json"))}
     tables.run(cfg, "all")                                     # same inputs -> same bytes
-    assert {f.name: f.read_bytes() for f in rep.iterdir() if f.name.endswith((".md", ".tex", ".csv"))} == before
-    assert set(tables.outputs(cfg, "all")) == {p for p in rep.iterdir()}
+    assert {f.name: f.read_bytes() for f in rep.iterdir()
+            if f.name.endswith((".md", ".tex", ".csv", "metrics.json"))} == before
+    assert set(tables.outputs(cfg, "all")) | {rep / "metrics.timing.json"} == {p for p in rep.iterdir()}
     with pytest.raises(ConfigError):
         tables.run(cfg, "nobody")
 
@@ -570,6 +574,7 @@ def test_finetune_table_reads_train_depth_record(tmp_path):
 
 def test_table_3_other_anatomy_from_evaluate_depth(tmp_path):
     """other_anatomy = evaluate_depth's cnn_pretrained (before) / cnn (after) on the non-training patients."""
+    from room_pipeline.evaluate.reports import eval_patients
     from room_pipeline.stages import tables
 
     cfg = make_cfg(tmp_path)
@@ -577,8 +582,8 @@ def test_table_3_other_anatomy_from_evaluate_depth(tmp_path):
     cfg.patients["m1"] = {"kind": "mask", "input": "z"}
     cfg.phantoms = {"p0": {"seed": 0}, "p1": {"seed": 1}}
     cfg.depth = {"cnn": {"checkpoint_patient": "p0"}, "train": {"eval_patients": None}}
-    assert tables.eval_patients(cfg, "p0", None) == [("m1", "real airway mask (shared data)")]
-    assert tables.eval_patients(cfg, "p0", ["p1", "p0"]) == [("p1", "phantom seed 1")]
+    assert eval_patients(cfg, "p0", None) == [("m1", "real airway mask (shared data)")]
+    assert eval_patients(cfg, "p0", ["p1", "p0"]) == [("p1", "phantom seed 1")]
     m = {"L1_mm": 2.0, "AbsRel": 0.2, "RMSE_mm": 3.0, "delta1": 0.5, "n_frames": 4}
     write_json(tmp_path / "out" / "evaluation" / "p0" / "depth_finetune.json", {"datasets": {
         "phantom_held_out": {"available": True, "reason": None, "before": m, "after": m}}})

@@ -21,7 +21,7 @@ from room_pipeline.io.mesh import write_obj
 from room_pipeline.io.metrics import is_timing_file, read_metrics_file, timing_path
 from room_pipeline.paths import PatientPaths
 from room_pipeline.report import SECTIONS, ReportOptions, build_report, main, write_report
-from room_pipeline.report import html as rh
+from room_pipeline.report import colour, common, draw3d, metrics, scene, tables
 from tests.test_raycast import look, tube
 
 MM = 1e-3
@@ -196,7 +196,7 @@ def test_metrics_table_lists_every_stage_file(page, dataset):
         doc = read_metrics_file(f)                                  # metrics + timings
         assert "wall_time_s" not in json.loads(f.read_text())       # the DVC metric holds no timing
         assert f"<td>{f.stem}</td>" in s
-        assert f"<td>{rh._fmt(doc['wall_time_s'])}</td>" in s
+        assert f"<td>{common.fmt(doc['wall_time_s'])}</td>" in s
     assert "tracking_error_max_mm" in s and "<details>" in s and "total" in s
 
 
@@ -226,24 +226,24 @@ def test_paper_tables_markdown_and_csv(tmp_path, opts):
                                       "- ATE after Sim(3) `umeyama`\n")
     write_text(d / "table_2_depth.csv", "Method,L1 (mm)\nzoe,1.5\n")
     write_text(d / "table_1_pose.csv", "ignored,because the md exists\n")
-    s = rh.section_tables(ReportOptions(output_dir=opts.output_dir, tables_dir=d))
+    s = tables.section_tables(ReportOptions(output_dir=opts.output_dir, tables_dir=d))
     assert "<h5>Table I: pose</h5>" in s
     assert '<th style="text-align:right">ATE (mm)</th>' in s and '<td style="text-align:right">0.31</td>' in s
     assert "<li>ATE after Sim(3) <code>umeyama</code></li>" in s
     assert "<td>zoe</td><td>1.5</td>" in s and "ignored" not in s
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert "not generated yet: no table_*.md or table_*.csv" in rh.section_tables(
+    assert "not generated yet: no table_*.md or table_*.csv" in tables.section_tables(
         ReportOptions(output_dir=opts.output_dir, tables_dir=empty))
 
 
 def test_markdown_escapes_html():
-    out = rh.markdown_to_html("# a <b>\n\nx & <script>y</script>\n")
+    out = tables.markdown_to_html("# a <b>\n\nx & <script>y</script>\n")
     assert "<script>" not in out and "&lt;script&gt;" in out and "&lt;b&gt;" in out
 
 
 def test_matplotlib_fallback_says_so(opts):
-    s = rh.section_view3d(ReportOptions(output_dir=opts.output_dir, view_size=(200, 160), use_pyvista=False),
+    s = draw3d.section_view3d(ReportOptions(output_dir=opts.output_dir, view_size=(200, 160), use_pyvista=False),
                           [opts.output_dir / PATIENT])
     assert s.count("matplotlib 3-D fallback (pyvista off-screen rendering unavailable: disabled") == 4
     for a in parse(s).imgs:
@@ -254,9 +254,9 @@ def test_metrics_absent_or_broken(tmp_path):
     p = tmp_path / "out" / "patient_x"
     (p / "anatomy").mkdir(parents=True)
     o = ReportOptions(output_dir=tmp_path / "out")
-    assert "not available: no patient_x/metrics/*.json" in rh.section_metrics(o, [p])
+    assert "not available: no patient_x/metrics/*.json" in metrics.section_metrics(o, [p])
     write_text(p / "metrics" / "mesh.json", "{not json")
-    s = rh.section_metrics(o, [p])
+    s = metrics.section_metrics(o, [p])
     assert "not available: mesh.json is not readable JSON" in s
 
 
@@ -290,36 +290,36 @@ def test_main_writes_the_file(tmp_path, opts, capsys):
 
 def test_colour_maps():
     d = np.array([[0.0, 1.0], [2.0, 3.0]])
-    c = rh.colorize(d, 1.0, 3.0, "viridis", valid=d > 0)
+    c = colour.colorize(d, 1.0, 3.0, "viridis", valid=d > 0)
     assert c.dtype == np.uint8 and c.shape == (2, 2, 3)
     assert np.all(c[0, 0] == 0) and not np.array_equal(c[0, 1], c[1, 1])
-    np.testing.assert_array_equal(c[0, 1], rh._lut("viridis")[0])
-    np.testing.assert_array_equal(c[1, 1], rh._lut("viridis")[255])
+    np.testing.assert_array_equal(c[0, 1], colour._lut("viridis")[0])
+    np.testing.assert_array_equal(c[1, 1], colour._lut("viridis")[255])
     f = np.zeros((1, 3, 2))
     f[0, 0] = (2.0, 0.0)       # right: red
     f[0, 1] = (0.0, 4.0)       # down, beyond the maximum: saturated
-    rgb = rh.flow_rgb(f, np.array([[True, True, False]]), 2.0)
+    rgb = colour.flow_rgb(f, np.array([[True, True, False]]), 2.0)
     assert tuple(rgb[0, 0]) == (255, 0, 0) and rgb[0, 1].min() < 5 and np.all(rgb[0, 2] == 0)
-    lab = rh.labels_rgb(np.array([[0, 1, 2, 1]]))
+    lab = colour.labels_rgb(np.array([[0, 1, 2, 1]]))
     assert np.all(lab[0, 0] == 0) and np.array_equal(lab[0, 1], lab[0, 3]) and not np.array_equal(lab[0, 1], lab[0, 2])
-    n = rh.normals_rgb(np.array([[[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]]], np.float32))
+    n = colour.normals_rgb(np.array([[[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]]], np.float32))
     assert tuple(n[0, 0]) == (128, 128, 0) and np.all(n[0, 1] == 0)
-    assert rh.pick_frames(10, 3) == [0, 4, 9] and rh.pick_frames(2, 5) == [0, 1] and rh.pick_frames(0, 3) == []
-    assert rh.thumbnail(np.zeros((40, 80, 3), np.uint8), 160).shape == (40, 80, 3)
-    assert rh.thumbnail(np.zeros((300, 600), np.uint16), 150, nearest=True).shape == (75, 150)
+    assert colour.pick_frames(10, 3) == [0, 4, 9] and colour.pick_frames(2, 5) == [0, 1] and colour.pick_frames(0, 3) == []
+    assert colour.thumbnail(np.zeros((40, 80, 3), np.uint8), 160).shape == (40, 80, 3)
+    assert colour.thumbnail(np.zeros((300, 600), np.uint16), 150, nearest=True).shape == (75, 150)
 
 
 def test_scope_backbone_matches_the_simulated_tip(dataset):
     meta = dataset / PATIENT / RENDERED_SEQ / "metadata"
     load = lambda n: json.loads((meta / n).read_text())  # noqa: E731
-    lines, tips, picks, mism = rh.scope_backbones(load("trajectory.json"), load("simulation.json"),
+    lines, tips, picks, mism = scene.scope_backbones(load("trajectory.json"), load("simulation.json"),
                                                   load("robot_config.json"), 2)
     assert picks == [4, 9] and len(lines) == 2 and tips.shape == (2, 3)
     for line, tip, m in zip(lines, tips, mism):
         assert np.isclose(np.linalg.norm(line[-1] - tip), m) and m < 2 * MM
         assert np.all(np.linalg.norm(line[:, :2], axis=1) < RADIUS)         # inside the tube
     with pytest.raises(InputError, match="passive"):
-        rh.scope_backbones(load("trajectory.json"), load("simulation.json"), {"insertion_model": "passive"}, 2)
+        scene.scope_backbones(load("trajectory.json"), load("simulation.json"), {"insertion_model": "passive"}, 2)
 
 
 # --------------------------------------------------------------------------- a real browser
@@ -356,7 +356,7 @@ def test_headless_chromium_loads_every_image_without_console_messages(tmp_path, 
 
 def test_summary_row_says_how_far_from_the_target_the_scope_stopped_and_why(tmp_path):
     """Issue #18: a route that ends short of its target (Med-MPD's nodule outside the lumen, a narrowing)."""
-    from room_pipeline.report.html import _sequence_row
+    from room_pipeline.report.sections import _sequence_row
 
     meta = tmp_path / "p" / "sequence_000" / "metadata"
     meta.mkdir(parents=True)
@@ -365,3 +365,51 @@ def test_summary_row_says_how_far_from_the_target_the_scope_stopped_and_why(tmp_
         "target": {"reached": False, "stop_distance": 0.01234, "stop_reason": "lumen_narrower_than_scope"}}))
     row = _sequence_row(meta.parent)
     assert "stopped 12.3 mm from the target (lumen_narrower_than_scope)" in row[2], row
+
+
+def test_generated_paper_table_keeps_its_content():
+    """The `tables` stage's Markdown, rendered by markdown-it-py: every header and cell text, the right
+    alignment of the number columns and every note come through unchanged (the page's content).  The page
+    shows what a CommonMark viewer shows (``*x*`` is emphasis there too; the old hand-written parser knew
+    only code spans and ``**bold**``)."""
+    from room_pipeline.evaluate.tables import Table
+
+    t = Table("table_1_pose", "Table I: pose <ROOM>", ["Method", "RRA@5 (%)", "ATE (mm)", "Status"],
+              [["colmap", "75.0", "0.31", "ok"], ["orb_vo_sift", "-", "1.20", "not run: a|b"]],
+              ["ATE after Sim(3) `umeyama`; times in s/frame", "**bold** and <tags> & ampersands"], {})
+    html_out = tables.markdown_to_html(t.to_markdown())
+
+    class Cells(HTMLParser):
+        def __init__(self):
+            super().__init__()
+            self.rows, self.cur, self.align, self.items, self.tag = [], None, [], [], None
+
+        def handle_starttag(self, tag, attrs):
+            if tag == "tr":
+                self.cur = []
+                self.rows.append(self.cur)
+            if tag in ("td", "th"):
+                self.cur.append("")
+                self.align.append(dict(attrs).get("style"))
+            if tag == "li":
+                self.items.append("")
+            self.tag = tag if tag in ("td", "th", "li") else self.tag
+
+        def handle_endtag(self, tag):
+            if tag in ("td", "th", "li"):
+                self.tag = None
+
+        def handle_data(self, data):
+            if self.tag in ("td", "th"):
+                self.cur[-1] += data
+            elif self.tag == "li":
+                self.items[-1] += data
+
+    c = Cells()
+    c.feed(html_out)
+    assert c.rows == [t.header] + [[x.replace("|", "/") for x in r] for r in t.rows]
+    assert "<h5>Table I: pose &lt;ROOM&gt;</h5>" in html_out and 'class="data"' in html_out
+    right = [a == "text-align:right" for a in c.align[:4]]
+    assert right == [a == "r" for a in t.align()]
+    assert len(c.items) == 2 and "<code>umeyama</code>" in html_out and "<strong>bold</strong>" in html_out
+    assert "&lt;tags&gt; &amp; ampersands" in html_out

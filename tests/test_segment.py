@@ -11,6 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import ndimage as ndi
 
+from room_pipeline.anatomy import region_growing
 from room_pipeline.anatomy import segment as seg
 from room_pipeline.anatomy.segment import (SegmentParams, SegmentResult, find_trachea_seed,
                                            segment_airways, validate_mask)
@@ -276,7 +277,7 @@ def test_region_growing_invariants(noise, rng_seed, radius, offset):
     p = SegmentParams(refine_hu=None, thin_airway_hu=None, fill_holes=False)
     res = segment_airways(ct, p)
     m = res.mask.data.astype(bool)
-    smooth = seg._denoise(ct, p)
+    smooth = region_growing._denoise(ct, p)
     assert m[res.seed]
     assert not (m & ~(smooth < res.threshold_hu)).any()          # subset of below-threshold voxels
     lab, n = ndi.label(m)

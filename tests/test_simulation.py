@@ -17,8 +17,10 @@ from room_pipeline.errors import ConfigError
 from room_pipeline.planning.trajectory import TargetInfo, Trajectory, TrajectoryParams, plan_path
 from room_pipeline.robot.actuation import Actuator, CommandSignal, apply_gain, sample_delay
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY, fk
-from room_pipeline.robot.pybullet_sim import (ScopeSim, SimParams, contact_probe, friction_probe, robot_config,
-                                              settle_free, simulate)
+from room_pipeline.robot.probes import contact_probe, friction_probe, settle_free
+from room_pipeline.robot.pybullet_adapter import ScopeSim
+from room_pipeline.robot.sim_params import SimParams
+from room_pipeline.robot.simulation import robot_config, simulate
 
 from .conftest import REPO
 
@@ -156,7 +158,7 @@ def test_wall_margin_is_the_wall_offset():
 
 def test_unstable_run_is_redone_at_half_the_step(phantom, monkeypatch):
     """A run that penetrates too deep is redone at dt/2 (at most max_step_halvings times), and says so."""
-    import room_pipeline.robot.pybullet_sim as ps
+    import room_pipeline.robot.simulation as ps
 
     tree, tr, mesh = phantom
     short = dataclasses.replace(tr, timestamps=tr.timestamps[:6], poses=tr.poses[:6], arclength=tr.arclength[:6])
@@ -316,7 +318,9 @@ def test_roll_is_held_near_zero_bending_and_follows_a_real_bend():
 
 
 def test_camera_roll_and_straight_stretch_change():
-    from room_pipeline.robot.pybullet_sim import _rx, _rz, camera_roll, straight_roll_change
+    from room_pipeline.geometry.rotations import rx as _rx
+    from room_pipeline.geometry.rotations import rz as _rz
+    from room_pipeline.robot.kinematics import camera_roll, straight_roll_change
 
     R = _rx(0.3) @ _rz(0.2)
     for a in (0.0, 0.4, -2.5):
@@ -334,7 +338,11 @@ def test_camera_roll_and_straight_stretch_change():
 
 
 def test_vectorised_route_frames_signal_and_log_match_the_scalar_forms():
-    from room_pipeline.robot.pybullet_sim import Route, _log_so3, _rx, _rz, log_so3_batch
+    from room_pipeline.geometry.rotations import log_so3 as _log_so3
+    from room_pipeline.geometry.rotations import log_so3_batch
+    from room_pipeline.geometry.rotations import rx as _rx
+    from room_pipeline.geometry.rotations import rz as _rz
+    from room_pipeline.robot.route import Route
 
     rng = np.random.default_rng(4)
     s = np.cumsum(rng.uniform(1e-3, 3e-3, 30))

@@ -48,16 +48,13 @@ def _config(args: argparse.Namespace):
 
 
 def _validate(cfg, stage: str | None = None, key: str | None = None) -> None:
-    """The whole composed config (and a stage's --patient), checked before any work (imported by name: no
-    stage's code becomes another's DVC dependency)."""
-    import importlib
-
+    """The whole composed config (and a stage's --patient), checked before any work."""
     from . import stages
+    from .config.validate import validate_config, validate_key
 
-    mod = importlib.import_module("room_pipeline.config.validate")
     if stage is not None and key is not None:
-        mod.validate_key(cfg, stage, key, stages.FAN_OUT[stage])
-    mod.validate_config(cfg)
+        validate_key(cfg, stage, key, stages.FAN_OUT[stage])
+    validate_config(cfg)
 
 
 def stage_output_paths(cfg, name: str, key: str) -> list[Path]:
@@ -72,6 +69,10 @@ def stage_output_paths(cfg, name: str, key: str) -> list[Path]:
         metric = f"{name}_{sequence}" if sequence else name
         pp = PatientPaths(Path(cfg.output_dir), patient)
         outs += [pp.metrics(metric), pp.timings(metric)]
+    else:   # the dataset stage (tables) lists its metrics file among its outputs; its timings sit beside it
+        from .io.metrics import timing_path
+
+        outs += [timing_path(p) for p in outs if p.name == "metrics.json"]
     return outs
 
 
@@ -270,7 +271,7 @@ def cmd_params(args: argparse.Namespace) -> int:
 TOOLS = {
     "calibrate-noise": ("room_pipeline.noise.cli", "measure a sensor-noise profile from real endoscope frames"),
     "export": ("room_pipeline.export", "export a rendered sequence (COLMAP, nerfstudio, TUM, PLY point clouds)"),
-    "report": ("room_pipeline.report.html", "write the self-contained HTML report of a dataset"),
+    "report": ("room_pipeline.report.cli", "write the self-contained HTML report of a dataset"),
     "realism": ("room_pipeline.realism", "image statistics of rendered frames against real bronchoscopy frames"),
     "navigate": ("room_pipeline.navigation.cli", "navigation demo (depth -> point cloud -> planner) and closed-loop episodes"),
 }

@@ -20,9 +20,13 @@ Method (Esposito et al., ROOM; written here from the description):
    points closer than ``max(link_voxels, link_radius_factor * r)`` are linked
    (edge weight = length x a centring penalty that favours the locally widest
    points); the root is the most superior point of the largest-radius part (the
-   trachea entry; on a flattened trachea, whose medial set is a sheet, the middle
-   of its top cross-section, and the sheet is crossed by one trunk, the centroid
-   path of its cross-sections); a shortest-path tree from the root is grown and branches are
+   trachea entry; on a flattened trachea, whose medial set is a sheet -- lumen
+   cross-section aspect ratio > ``FLAT_ASPECT`` -- the middle of its top
+   cross-section, and the sheet is crossed by one trunk, the centroid path of its
+   cross-sections; on a scan cut just above the carina, where the skeleton
+   divides at the cut into two downward arms, the middle of the cut
+   cross-section, joined by a short root branch to where the arms part); a
+   shortest-path tree from the root is grown and branches are
    extracted TEASAR-like (farthest remaining point -> path back to the
    skeleton -> invalidate the points within ``invalidation_scale * r +
    invalidation_voxels`` of it);
@@ -40,6 +44,11 @@ Method (Esposito et al., ROOM; written here from the description):
 
 Output: :class:`~room_pipeline.anatomy.centreline.CentrelineGraph` (metres,
 RAS+, proximal -> distal, generation = bifurcations above the branch).
+
+Over 500 lines because the graph construction (``_build_graph``, step 3-4, ~400 lines) is one pass whose
+steps (linking, root, TEASAR extraction, pruning, merging, bridging, loop count) share the cluster arrays and
+the report dict; splitting it would pass a dozen arrays between modules.  The root's rules (cut scans,
+flattened tracheas) are apart, in :mod:`room_pipeline.anatomy.trachea_root`.
 """
 from __future__ import annotations
 
@@ -57,6 +66,10 @@ from ..config.params import params_from_dict
 from ..errors import ConfigError, InputError
 from ..io.volume import Volume
 from .centreline import CentrelineGraph, GraphBranch
+from .sdf_field import SdfField as _Field
+from .trachea_root import (ENTRY_ARM_DESCENT_DEG, FLAT_ASPECT, _arm_headings,
+                           _arms_split, _cross_section_aspect, _cut_entry, _root_arms, _sheet_like, _sheet_trunk,
+                           _top_centre, _trachea_sheet)
 
 log = logging.getLogger(__name__)
 
@@ -140,55 +153,6 @@ def crop_to_interior(vol: Volume, margin_voxels: int = 4, inside=None) -> Volume
     aff = vol.affine.copy()
     aff[:3, 3] = vol.index_to_world(lo[None].astype(float))[0]
     return Volume(np.ascontiguousarray(vol.data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]), aff)
-
-
-class _Field:
-    """SDF + world gradient on a grid, trilinear lookup of all four channels at once."""
-
-    def __init__(self, sdf: np.ndarray, affine: np.ndarray):
-        A = affine[:3, :3]
-        self.Ainv = np.linalg.inv(A)
-        self.A = A
-        self.t = affine[:3, 3]
-        g = np.gradient(sdf.astype(np.float32))
-        gw = np.einsum("ji,jxyz->xyzi", self.Ainv.astype(np.float32), np.stack(g))  # Ainv^T g
-        self.vals = np.concatenate([sdf.astype(np.float32)[..., None], gw], axis=3).reshape(-1, 4)
-        self.shape = np.array(sdf.shape)
-        self.strides = np.array([sdf.shape[1] * sdf.shape[2], sdf.shape[2], 1], dtype=np.int64)
-        self.offsets = np.array([(a * self.strides[0] + b * self.strides[1] + c * self.strides[2])
-                                 for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.int64)
-        self.corner = np.array([(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.float32)
-
-    def sample(self, ijk: np.ndarray) -> np.ndarray:
-        """(N, 3) continuous indices -> (N, 4): sdf, world gradient."""
-        p = np.clip(ijk, 0, self.shape - 1.000001)
-        i0 = np.minimum(np.floor(p).astype(np.int64), self.shape - 2)
-        f = (p - i0).astype(np.float32)
-        base = i0 @ self.strides
-        w = np.prod(np.where(self.corner[None] > 0, f[:, None, :], 1 - f[:, None, :]), axis=2)  # (N, 8)
-        v = self.vals[base[:, None] + self.offsets[None]]  # (N, 8, 4)
-        return np.einsum("nk,nkc->nc", w, v)
-
-    def radius(self, ijk: np.ndarray) -> np.ndarray:
-        """Lumen radius at (N, 3) indices: ``min_v (-sdf(v) + |x - v|)`` over the 8 surrounding voxels.
-
-        The SDF is 1-Lipschitz, so every term bounds the true ``-sdf(x)`` from
-        above and the minimum is exact on the medial ridge, where trilinear
-        interpolation of the V-shaped profile underestimates the depth.
-        """
-        p = np.clip(ijk, 0, self.shape - 1.000001)
-        i0 = np.minimum(np.floor(p).astype(np.int64), self.shape - 2)
-        f = p - i0
-        base = i0 @ self.strides
-        s = self.vals[base[:, None] + self.offsets[None], 0].astype(np.float64)  # (N, 8)
-        off = (f[:, None, :] - self.corner[None].astype(np.float64)) @ self.A.T  # (N, 8, 3) world
-        return np.min(-s + np.linalg.norm(off, axis=2), axis=1)
-
-    def to_world(self, ijk: np.ndarray) -> np.ndarray:
-        return ijk @ self.A.T + self.t
-
-    def to_index(self, xyz: np.ndarray) -> np.ndarray:
-        return (xyz - self.t) @ self.Ainv.T
 
 
 def _surface_samples(sdf: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -400,14 +364,30 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     # The entry is the middle of the trachea's top cross-section.  On a round trachea the most superior wide
     # point is on the axis; on a flattened one (fibrotic lungs: 10 x 24 mm) the medial surface is a sheet and
     # that point can sit anywhere on its top edge, down to where the lumen is barely wider than the cut-off
-    # radius.  When the trachea's medial points below its top spread across it by more than 0.75 x its radius
-    # and most of them lie on a sheet (``_sheet_like``), the root moves to the middle of the top cross-section
-    # and the skeleton crosses the sheet by one trunk (``_sheet_trunk``).
+    # radius.  When the trachea's lumen cross-section (normal to its axis) is flattened, its aspect ratio
+    # above ``FLAT_ASPECT`` (``_cross_section_aspect``), and most of its medial points below the top lie on a
+    # sheet (``_sheet_like``), the root moves to the middle of the top cross-section and the skeleton crosses
+    # the sheet by one trunk (``_sheet_trunk``).  (The medial points' spread over the radius, the switch
+    # until issue #18's round 7, stays in the report: round tracheas measured up to 0.72, 20x12 mm 0.84.)
     centre, axis_dir, below, spread = _top_centre(root, trachea, pts, float(rad[imax]))
     sheet_frac = float(np.mean(_sheet_like(below, kd, pts, rad, voxel))) if len(below) >= 10 else 0.0
+    # the axis for the cross-sections: a straight line fitted to the trachea's medial points within 4 radii
+    # of its top (the top band alone, _top_centre's, is too short to give a leaning trachea's direction)
+    zt_ = pts[root, 2]
+    q4 = pts[trachea[pts[trachea, 2] >= zt_ - 4.0 * float(rad[imax])]]
+    if len(q4) >= 3 and np.ptp(q4[:, 2]) > 0:
+        A4 = np.stack([np.ones(len(q4)), q4[:, 2] - zt_], axis=1)
+        c4 = np.linalg.lstsq(A4, q4[:, :2], rcond=None)[0]
+        ax4 = -np.array([c4[1, 0], c4[1, 1], 1.0])
+        ax4 /= np.linalg.norm(ax4)
+    else:
+        ax4 = axis_dir
+    aspect = _cross_section_aspect(field, pts[centre], ax4, float(rad[imax]), voxel)
+    rep["trachea_aspect_ratio"] = round(aspect, 3)
     rep["trachea_top_spread_mm"] = round(spread / 1e-3, 3)
+    rep["trachea_top_radius_mm"] = round(float(rad[centre]) / 1e-3, 3)
     rep["trachea_top_sheet_fraction"] = round(sheet_frac, 3)
-    rep["root_centred"] = bool(spread > 0.75 * float(rad[centre]) and sheet_frac > 0.5)
+    rep["root_centred"] = bool(aspect > FLAT_ASPECT and sheet_frac > 0.5)
     if rep["root_centred"]:
         root = centre
 
@@ -508,7 +488,84 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         skel_parent[thin] = -1
         rep["root_thin_arms_cut"] = len(arms) - 1
     n_children = np.bincount(skel_parent[skel_parent >= 0], minlength=M)
-    if n_children[root] >= 2:
+    rep["root_entry_bifurcation"] = False
+    entry = None
+    # The first fork of the skeleton below the candidate: the candidate itself, or the end of its single chain
+    # when that is shorter than 2 root radii (a trachea cut just above the carina whose top holds a few
+    # medial points before the skeleton divides).
+    fork, chain_len, chain = root, 0.0, []
+    kids_of = {}
+    for n in np.flatnonzero(in_skel & (skel_parent >= 0)):
+        kids_of.setdefault(int(skel_parent[n]), []).append(int(n))
+    while n_children[fork] == 1 and chain_len <= 2.0 * float(rad[root]):
+        chain.append(fork)
+        nxt = kids_of[fork][0]
+        chain_len += float(np.linalg.norm(pts[nxt] - pts[fork]))
+        fork = nxt
+    if n_children[fork] >= 2 and chain_len <= 2.0 * float(rad[root]) and not rep["root_centred"]:
+        # Two wide arms that both run down from the fork: the scan is cut just above the carina (the fork is
+        # the bifurcation, the trachea above it a stub too short to hold a branch of its own).  Read it as a
+        # bifurcation at the entry: a short root branch from the middle of the cut cross-section (_cut_entry)
+        # to where the two arms part (_arms_split), both arms its children.  Else (an arch, a narrowed
+        # trachea with a wide arm up, a closed top) the rules below apply.
+        sk = in_skel.copy()
+        sk[chain] = False
+        par = skel_parent.copy()
+        par[fork] = -1
+        f_arms = arms if fork == root else _root_arms(fork, sk, par, dist, pts, rad, 0.5 * float(rad[fork]))
+        f_keep = params.prune_factor * float(rad[fork])
+        f_wide = [a for a, (_, w, far) in f_arms.items() if w >= f_keep and far >= f_keep]
+        f_wide = sorted(f_wide, key=lambda a: -f_arms[a][1])[:2]
+        if len(f_wide) == 2:
+            heads = _arm_headings(fork, f_wide, sk, par, dist, pts, 3.0 * float(rad[fork]))
+            rep["root_arm_descent_deg"] = [round(float(np.degrees(np.arcsin(np.clip(-h_[2], -1, 1)))), 1)
+                                           for h_ in heads]
+            if all(-h_[2] >= np.sin(np.deg2rad(ENTRY_ARM_DESCENT_DEG)) for h_ in heads):
+                entry = _cut_entry(fork, pts, rad, field, voxel)
+    if entry is not None:
+        a_k, b_k, junction = _arms_split(fork, f_wide, sk, par, dist, pts, field)
+        stub = float(np.linalg.norm(entry - junction))
+        where = ", ".join(f"{v / 1e-3:.1f}" for v in entry)
+        if stub < voxel:
+            raise InputError(f"medial axis: no trachea-like root: the airway divides at the scan's top cut "
+                             f"({where}) mm (the first bifurcation is {stub / 1e-3:.1f} mm below it; cut at or "
+                             f"below the carina)")
+        t = np.linspace(0.0, 1.0, max(3, int(np.ceil(stub / (0.25 * voxel)))) + 1)[:, None]
+        if not np.all(field.sample(field.to_index(entry + t * (junction - entry)))[:, 0] < 0):
+            raise InputError(f"medial axis: no trachea-like root: the middle of the scan's top cross-section "
+                             f"({where}) mm has no straight way inside the lumen to the first bifurcation "
+                             f"(cut at or below the carina)")
+        # keep the skeleton below the split points; the candidate's arms above them and its other arms go
+        keep = np.zeros(M, dtype=bool)
+        keep[[a_k, b_k]] = True
+        for n in np.flatnonzero(in_skel)[np.argsort(dist[in_skel], kind="stable")]:
+            if skel_parent[n] >= 0 and keep[skel_parent[n]]:
+                keep[n] = True
+        in_skel &= keep
+        skel_parent[~keep] = -1
+        pts = np.vstack([pts, entry[None], junction[None]])
+        rad = np.append(rad, np.maximum(field.radius(field.to_index(np.stack([entry, junction]))), 0.0))
+        in_skel = np.append(in_skel, [True, True])
+        skel_parent = np.append(skel_parent, [-1, M])
+        skel_parent[[a_k, b_k]] = M + 1
+        in_root = np.append(in_root, [False, False])   # (not medial cluster points: no links, no loop test)
+        rep["root_entry_bifurcation"] = True
+        rep["root_stub_mm"] = round(stub / 1e-3, 3)
+        root = M
+        M += 2
+    elif n_children[root] >= 2:
+        desc = rep.get("root_arm_descent_deg")
+        top = _cut_entry(root, pts, rad, field, voxel) if desc is not None and not rep["root_centred"] else None
+        if (top is not None and min(desc) > -ENTRY_ARM_DESCENT_DEG
+                and top[2] - pts[root, 2] <= 2.0 * float(rad[root])):
+            # the candidate is at an open cut (within 2 radii of it) and leaves it in two wide arms, neither
+            # rising (then the trachea goes on up to the cut: re-root at its end, as CASE091), not both
+            # running down: the airway divides at the cut; re-rooting at a free end would start the route
+            # in a bronchus
+            raise InputError("medial axis: no trachea-like root: the airway divides at the scan's top cut ("
+                             + ", ".join(f"{v / 1e-3:.1f}" for v in top) + ") mm into branches that do not both "
+                             f"run down from it (descent {rep.get('root_arm_descent_deg', '?')} deg; cut at or "
+                             "below the carina)")
         ends = np.flatnonzero(in_skel & (n_children == 0))
         wide = ends[rad[ends] >= 0.5 * rad[root]]
         cand = wide if len(wide) else ends
@@ -651,148 +708,6 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     if rep["loops_broken"]:
         log.warning("medial axis: broke %d loop(s) in the lumen to make a tree", rep["loops_broken"])
     return graph, rep
-
-
-def _root_arms(root: int, in_skel: np.ndarray, parent: np.ndarray, dist: np.ndarray, pts: np.ndarray,
-               rad: np.ndarray, wide_radius: float) -> dict[int, tuple[float, float, float]]:
-    """For each skeleton child of ``root`` (an arm: the subtree through it), metres: the longest path from the
-    root through it; the longest such path whose points from the root on all have radius >= ``wide_radius``;
-    the largest distance of its points from the longest arm (inf for that arm)."""
-    nodes = np.flatnonzero(in_skel)
-    nodes = nodes[np.argsort(dist[nodes], kind="stable")]        # parents before children
-    arc = np.zeros(len(pts))
-    arm = np.full(len(pts), -1, dtype=np.int64)
-    wide = np.zeros(len(pts), dtype=bool)
-    wide[root] = True
-    out: dict[int, list[float]] = {}
-    for n in nodes:
-        p = int(parent[n])
-        if p < 0:
-            continue
-        arc[n] = arc[p] + float(np.linalg.norm(pts[n] - pts[p]))
-        arm[n] = n if p == root else arm[p]
-        wide[n] = wide[p] and rad[n] >= wide_radius
-        o = out.setdefault(int(arm[n]), [0.0, 0.0])
-        o[0] = max(o[0], float(arc[n]))
-        if wide[n]:
-            o[1] = max(o[1], float(arc[n]))
-    if not out:
-        return {}
-    longest = max(out, key=lambda k: out[k][0])
-    kd = cKDTree(pts[arm == longest])
-    res = {}
-    for k, (length, wide_len) in out.items():
-        far = np.inf if k == longest else float(kd.query(pts[arm == k])[0].max())
-        res[k] = (length, wide_len, far)
-    return res
-
-
-def _top_centre(root: int, trachea: np.ndarray, pts: np.ndarray, r_max: float
-                ) -> tuple[int, np.ndarray, np.ndarray, float]:
-    """The middle of the trachea's top cross-section, the trachea's axis there, and how its medial points
-    spread below the top.
-
-    The top slab is the trachea points within ``r_max`` below ``root``'s height.  Their horizontal position is
-    fitted as a straight line in height (a leaning trachea's axis); the middle is the slab point nearest that
-    line at ``root``'s height and the axis is the line's downward direction.  Below the top slab (``r_max`` to
-    ``2.5 r_max`` down: a closed end's medial cone lies within ``r_max`` of it), the trachea points and their
-    largest distance from the line are returned: about a voxel on a round trachea, whose medial set is its
-    axis; about the half-width less the edge radius on a flattened one, whose medial set is a sheet."""
-    top = pts[root, 2]
-    band = trachea[pts[trachea, 2] >= top - r_max]
-    q = pts[band]
-    A = np.stack([np.ones(len(q)), q[:, 2] - top], axis=1)
-    coef = np.linalg.lstsq(A, q[:, :2], rcond=None)[0] if len(q) >= 2 else np.array([q[0, :2], [0.0, 0.0]])
-    c = np.array([coef[0, 0], coef[0, 1], top])
-    down = -np.array([coef[1, 0], coef[1, 1], 1.0])
-    z = pts[trachea, 2]
-    below = trachea[(z < top - r_max) & (z >= top - 2.5 * r_max)]
-    qb = pts[below]
-    line = np.stack([np.ones(len(qb)), qb[:, 2] - top], axis=1) @ coef
-    spread = float(np.linalg.norm(qb[:, :2] - line, axis=1).max()) if len(qb) else 0.0
-    return int(band[np.argmin(np.linalg.norm(q - c, axis=1))]), down / np.linalg.norm(down), below, spread
-
-
-#: second / first eigenvalue of the local medial points' covariance above which they form a sheet
-SHEET_RATIO = 0.25
-
-
-def _sheet_like(i: np.ndarray, kd: cKDTree, pts: np.ndarray, rad: np.ndarray, voxel: float) -> np.ndarray:
-    """Whether the medial set is locally two-dimensional at points ``i``: the cluster points within the point's
-    own radius (at least 2 voxels; at least 6 of them) spread in a second direction, the second eigenvalue of
-    their covariance > 0.25 x the first (a disc gives 1, the half-disc at a sheet's edge 0.28, the scattered
-    points along a tube's axis ~0.02)."""
-    out = np.zeros(len(i), dtype=bool)
-    for k, (n, nb) in enumerate(zip(i, kd.query_ball_point(pts[i], np.maximum(rad[i], 2.0 * voxel)))):
-        if len(nb) < 6:
-            continue
-        q = pts[nb] - pts[nb].mean(axis=0)
-        ev = np.linalg.eigvalsh(q.T @ q / len(nb))
-        out[k] = ev[1] > SHEET_RATIO * ev[2]
-    return out
-
-
-def _trachea_sheet(root: int, G, pts: np.ndarray, rad: np.ndarray, voxel: float,
-                   params: MedialAxisParams) -> np.ndarray:
-    """The medial sheet of a flattened trachea: the points where the medial set is locally two-dimensional
-    (:func:`_sheet_like`), connected to ``root`` through such points, and the points within TEASAR's
-    invalidation distance of them."""
-    kd = cKDTree(pts)
-    sheet = np.zeros(len(pts), dtype=bool)
-    seen = np.zeros(len(pts), dtype=bool)
-    front = np.array([root])
-    seen[root] = True
-    G = G.tocsr()
-    while len(front):
-        ok = front[_sheet_like(front, kd, pts, rad, voxel)]
-        sheet[ok] = True
-        nxt = np.unique(np.concatenate([G.indices[G.indptr[i]:G.indptr[i + 1]] for i in ok])) if len(ok) else []
-        nxt = np.asarray(nxt, dtype=np.int64)
-        front = nxt[~seen[nxt]]
-        seen[front] = True
-    out = sheet.copy()
-    idx = np.flatnonzero(sheet)
-    for lst in kd.query_ball_point(pts[idx], params.invalidation_scale * rad[idx]
-                                   + params.invalidation_voxels * voxel):
-        out[lst] = True
-    return np.flatnonzero(out)
-
-
-def _sheet_trunk(root: int, on_sheet: np.ndarray, pts: np.ndarray, rad: np.ndarray, axis: np.ndarray,
-                 voxel: float) -> np.ndarray:
-    """The trunk across a flattened trachea's medial sheet: from ``root`` down, steps of half the root's radius
-    (>= a voxel), each to the sheet point nearest the centroid of the sheet points in the next cross-section
-    (a slab one step thick across the current direction, within the top's half-width of the path); the
-    direction follows the centroids.  Ends where a cross-section holds fewer than 3 sheet points or the path
-    would turn by more than 45 degrees in one step (the carina)."""
-    h = max(0.5 * float(rad[root]), voxel)
-    idx = np.flatnonzero(on_sheet)
-    if len(idx) == 0:
-        return np.array([root], dtype=np.int64)
-    q = pts[idx]
-    c = pts[root].copy()
-    d = axis.copy()
-    top = q[np.abs((q - c) @ d) <= 2.0 * h]
-    half = float(np.linalg.norm((top - c) - np.outer((top - c) @ d, d), axis=1).max()) + voxel if len(top) else 0.0
-    trunk = [root]
-    for _ in range(int(np.ceil(10.0 * np.ptp(q, axis=0).max() / h)) + 1):
-        g = c + h * d
-        off = q - g
-        ax = off @ d
-        lat = np.linalg.norm(off - np.outer(ax, d), axis=1)
-        sel = (np.abs(ax) <= 0.5 * h) & (lat <= half)
-        if sel.sum() < 3:
-            break
-        m = q[sel].mean(axis=0)
-        step = m - c
-        if not np.linalg.norm(step) > 0.25 * h or step @ d < 0.7 * np.linalg.norm(step):
-            break                                   # stalled, or turning (> 45 deg): the carina
-        d = step / np.linalg.norm(step)
-        c = m
-        n = int(idx[np.argmin(np.linalg.norm(q - m, axis=1))])
-        if n not in trunk:
-            trunk.append(n)
-    return np.array(trunk, dtype=np.int64)
 
 
 def _bridge_components(G, pts: np.ndarray, field: _Field, voxel: float, max_rounds: int = 20):

@@ -64,13 +64,13 @@ def _execution(cfg: DictConfig) -> Any:
 
 
 def _pose(cfg: DictConfig) -> Any:
-    mod = importlib.import_module("room_pipeline.stages.evaluate_pose")
+    mod = importlib.import_module("room_pipeline.evaluate.pose_eval")
     p = mod.PoseEvalParams.from_dict(_section(cfg, "evaluate.pose"))
     return p.method_params()
 
 
 def _tables(cfg: DictConfig) -> Any:
-    mod = importlib.import_module("room_pipeline.stages.tables")
+    mod = importlib.import_module("room_pipeline.evaluate.reports")
     return mod.TablesParams.from_dict(_section(cfg, "evaluate.tables"))
 
 
@@ -83,14 +83,14 @@ def _noise(cfg: DictConfig) -> Any:
 
 #: config section -> builder of the params a stage makes from it (the same call the stage makes)
 CHECKS: dict[str, Callable[[DictConfig], Any]] = {
-    "phantom": _build("room_pipeline.anatomy.phantom", "PhantomParams", "phantom"),
-    "segment": _build("room_pipeline.anatomy.segment", "SegmentParams", "segment"),
+    "phantom": _build("room_pipeline.anatomy.phantom_params", "PhantomParams", "phantom"),
+    "segment": _build("room_pipeline.anatomy.segment_params", "SegmentParams", "segment"),
     "sdf": _build("room_pipeline.anatomy.sdf", "SdfParams", "sdf"),
     "mesh": _build("room_pipeline.anatomy.mesh", "MeshParams", "mesh"),
     "medial_axis": _build("room_pipeline.anatomy.medial_axis", "MedialAxisParams", "medial_axis"),
-    "trajectory": _build("room_pipeline.planning.trajectory", "TrajectoryParams", "trajectory"),
-    "simulate": _build("room_pipeline.robot.pybullet_sim", "SimParams", "simulate"),
-    "render": _build("room_pipeline.stages.render", "RenderParams", "render"),
+    "trajectory": _build("room_pipeline.planning.trajectory_params", "TrajectoryParams", "trajectory"),
+    "simulate": _build("room_pipeline.robot.sim_params", "SimParams", "simulate"),
+    "render": _build("room_pipeline.render.params", "RenderParams", "render"),
     "execution": _execution,
     "noise": _noise,
     "evaluate.pose": _pose,

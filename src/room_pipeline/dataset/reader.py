@@ -1,7 +1,7 @@
 """Plain-NumPy reader of a rendered ROOM sequence (no torch): one frame at a time, only what is asked for.
 
 A *sequence folder* is what the ``render`` stage writes (``<output_dir>/<patient>/<sequence>/``, see
-:mod:`room_pipeline.stages.render`); it is recognised by its ``metadata/render.json``.  The reader
+:mod:`room_pipeline.render.sequence`); it is recognised by its ``metadata/render.json``.  The reader
 loads that file and ``calibration/camera_params.json`` when it is built, and the image files of a
 frame only when :meth:`SequenceReader.frame` is called, and only the folders of the requested
 modalities.

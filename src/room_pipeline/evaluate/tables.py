@@ -1,6 +1,6 @@
 """The report tables (the ROOM paper's Tables I-III) from per-sequence evaluation records: pure functions.
 
-Inputs are the parsed evaluation files (see :mod:`room_pipeline.stages.tables`
+Inputs are the parsed evaluation files (see :mod:`room_pipeline.evaluate.reports`
 for where they live):
 
 * pose records  -- ``evaluation/pose.json`` per sequence:

@@ -17,6 +17,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from .atomic import write_json
+
 #: key names that are timings or resource use, not accuracy (moved to ``<stage>.timing.json``):
 #: ``wall_time_s`` stage wall time; ``peak_rss_mb`` peak resident memory of the stage process (MiB);
 #: ``frames_per_s`` / ``seconds_per_frame`` / ``cpu_seconds_per_frame`` / ``seconds_per_frame_all_methods``
@@ -71,6 +73,16 @@ def merge_timings(metrics: dict, timings: dict) -> dict:
     for k, v in timings.items():
         out[k] = merge_timings(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
+
+
+def write_metrics_file(path: str | Path, metrics: dict) -> None:
+    """``path`` (a DVC metrics file) and its ``.timing.json`` sibling, from one dict split by
+    :func:`split_timings`: the metric gets the accuracy keys only, so the same config gives the same bytes.
+    Each file is written atomically, timings first (the metrics file marks a finished stage).  A ``units``
+    entry that names a timing key moves with it; the timing file's ``units`` also carries :data:`UNITS`."""
+    accuracy, timings = split_timings(metrics)
+    write_json(timing_path(path), {**timings, "units": {**(timings.get("units") or {}), **UNITS}})
+    write_json(path, accuracy)
 
 
 def read_metrics_file(path: str | Path, timings: bool = True) -> dict:

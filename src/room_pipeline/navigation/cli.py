@@ -52,7 +52,7 @@ def load_patient(output_dir: Path, patient: str):
 
 def params_from(cfg):
     """(PlannerParams, EpisodeParams, SimParams) of a composed config."""
-    from ..robot.pybullet_sim import SimParams
+    from ..robot.sim_params import SimParams
     from .closed_loop import EpisodeParams
     from .planner import PlannerParams
 

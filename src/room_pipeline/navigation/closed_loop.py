@@ -16,7 +16,7 @@ Episode (one patient, one target branch of the centreline graph)
     reach and its insertion stopped).  The command is rate-limited (the simulate config's actuator rates),
     sent through the actuator model (:class:`~room_pipeline.robot.actuation.Actuator`: the paper's delay
     ~ U(0, delay_max_s) drawn once per episode from ``seed``, and gains), and PyBullet
-    (:class:`~room_pipeline.robot.pybullet_sim.ScopeSim`, the simulate config's scope, contact and friction,
+    (:class:`~room_pipeline.robot.pybullet_adapter.ScopeSim`, the simulate config's scope, contact and friction,
     at ``physics_step_s``) integrates the control period against the decimated
     lumen (``collision_model.obj``).
 
@@ -64,7 +64,10 @@ from ..render.camera import CameraIntrinsics
 from ..robot.actuation import Actuator, CommandSignal, sample_delay
 from ..robot.controller import _wrap, rate_limit, regularise_roll
 from ..robot.kinematics import ScopeGeometry
-from ..robot.pybullet_sim import Route, ScopeSim, SimParams, _rz
+from ..geometry.rotations import rz as _rz
+from ..robot.pybullet_adapter import ScopeSim
+from ..robot.route import Route
+from ..robot.sim_params import SimParams
 from .airways import COMMANDS, Airways, Patient, check_target, generation_targets, operator_command, start_pose  # noqa: F401
 from .lumen import TrueLumen
 from .perception import back_project

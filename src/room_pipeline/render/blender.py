@@ -8,6 +8,11 @@ Embree builds clash and Cycles breaks (see ``DESIGN.md``).  ``bpy`` holds one
 global Blender session per process, so only one :class:`CyclesRenderer` is live
 at a time (building a new one factory-resets the session).
 
+Over 500 lines because it is the bpy adapter and the only module allowed to import ``bpy`` (the Kubric rule
+the import tests keep): building the scene, the tissue's shader nodes, the light, the camera and its
+animation, the render passes and reading them back all call bpy, and split across modules each part would
+need bpy too.
+
 What is rendered (one Cycles render per frame, all passes at once):
 
 ``rgb``
@@ -123,7 +128,11 @@ class CyclesSettings:
     tile_size: Cycles tile size in pixels; denoise_prefilter: OIDN guide
     prefilter (NONE / FAST / ACCURATE: ACCURATE denoises the albedo and normal
     guides too, about 3x the denoiser time); denoise_quality: OIDN quality
-    (FAST / BALANCED / HIGH).
+    (FAST / BALANCED / HIGH); clamp_indirect: Cycles' ``sample_clamp_indirect`` (Blender's default 10;
+    0 = no clamp: an unbiased reference, since near the tip light a bounced sample's radiance exceeds 10);
+    filter_glossy: Cycles' ``blur_glossy`` (Blender's default 1.0; 0 = the glossy lobe keeps its roughness
+    after a diffuse bounce, unbiased).  The references of benchmarks/realism_indirect.py and the closed-sphere
+    test use 0 and 0 (tests/test_indirect.py: with Blender's defaults the sphere renders ~3 % darker).
     """
 
     samples: int = 4
@@ -140,6 +149,8 @@ class CyclesSettings:
     tile_size: int = 2048
     denoise_prefilter: str = "FAST"
     denoise_quality: str = "BALANCED"
+    clamp_indirect: float = 10.0
+    filter_glossy: float = 1.0
 
     def __post_init__(self) -> None:
         if self.samples < 1:
@@ -154,6 +165,9 @@ class CyclesSettings:
             raise ConfigError(f"cycles.denoise_prefilter must be NONE, FAST or ACCURATE, got {self.denoise_prefilter!r}")
         if self.denoise_quality not in ("FAST", "BALANCED", "HIGH"):
             raise ConfigError(f"cycles.denoise_quality must be FAST, BALANCED or HIGH, got {self.denoise_quality!r}")
+        if not (self.clamp_indirect >= 0.0 and self.filter_glossy >= 0.0):
+            raise ConfigError(f"cycles.clamp_indirect and cycles.filter_glossy must be >= 0, got "
+                              f"{self.clamp_indirect}, {self.filter_glossy}")
         if not 0.01 <= self.filter_width <= 10.0:
             raise ConfigError(f"cycles.filter_width must be in [0.01, 10] px, got {self.filter_width}")
 
@@ -394,6 +408,9 @@ class CyclesRenderer:
         c.transparent_max_bounces = 0
         c.caustics_reflective = c.caustics_refractive = False
         c.use_light_tree = False  # one light: nothing to choose between
+        c.sample_clamp_direct = 0.0
+        c.sample_clamp_indirect = float(st.clamp_indirect)
+        c.blur_glossy = float(st.filter_glossy)
         c.seed = int(st.seed)
         c.use_animated_seed = False
         c.film_exposure = 1.0  # exposure is applied to the linear result (see exposure_ev)

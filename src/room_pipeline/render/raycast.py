@@ -1,6 +1,11 @@
 """Fast renderer: Open3D ray casting of the lumen mesh, every modality from one cast per frame.
 
-This is the only rendering module that imports open3d.  Usage::
+Open3D itself is imported only by :mod:`room_pipeline.geometry.open3d_adapter`; this module builds on it.
+
+Over 500 lines because :class:`RaycastRenderer` is one job, every modality from one cast per frame: depth,
+normals, flow, segmentation and the RGB shading all read the same per-frame hit arrays (triangle ids,
+barycentrics, ray directions) held by the class, so splitting it would pass those arrays between modules for
+no reuse; the light transport itself is apart (shading.py, indirect.py, texture.py).  Usage::
 
     r = RaycastRenderer(scene)                       # builds the BVH once
     out = r.render(i, {"rgb", "depth", "flow"})      # only these are computed
@@ -483,7 +488,7 @@ class RaycastRenderer:
         rad = self.radiosity
         t0 = time.perf_counter()
         pose = self.scene.poses[i]
-        ed, e = rad.vertex_irradiance(pose, self.scene.light)
+        ed, e, lv = rad.frame(pose, self.scene.light)
         f = self.scene.mesh.faces
         tab = np.zeros((9, len(f) + 1), dtype=np.float32)
         tab[:, :-1] = e[f].reshape(-1, 9).T
@@ -503,7 +508,7 @@ class RaycastRenderer:
             r = d - 2 * np.einsum("ij,ij->i", d, nrm)[:, None] * nrm                 # mirror direction, camera frame
             p = self.camera_points(c)[::s, ::s][sub].astype(np.float64)
             org = (p + cfg.eps_m * nrm) @ R.T + pose[:3, 3]
-            lm = rad.mirror_radiance(org, r @ R.T, e + ed[:, None])
+            lm = rad.mirror_radiance(org, r @ R.T, lv)
             coarse = np.zeros((gh, gw, 3), dtype=np.float32)
             coarse[sub] = lm
             if s > 1:

@@ -5,7 +5,7 @@ planned trajectory) and a function giving the world pose of the **bending-segmen
 base** as a function of the insertion ``q3`` (roll excluded: its z axis is the
 insertion direction, q2 = 0).  The robot base frame of
 :mod:`room_pipeline.robot.kinematics` is that pose shifted back by ``q3`` along its z,
-so ``fk(q)`` is the tip relative to it.  :func:`room_pipeline.robot.kinematics.ik`
+so ``fk(q)`` is the tip relative to it.  :func:`room_pipeline.robot.inverse_kinematics.ik`
 (tip position and view direction) is solved in that frame; because the shaft follows a
 curved route, the base frame moves with ``q3``: the solve is repeated with the base
 frame at the new ``q3`` until ``q3`` changes by less than ``q3_tol_m`` (a fixed point,
@@ -31,7 +31,8 @@ import math
 
 import numpy as np
 
-from .kinematics import ScopeGeometry, ik
+from .inverse_kinematics import ik
+from .kinematics import ScopeGeometry
 
 BaseFrameFn = Callable[[float], np.ndarray]
 

@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
-import math
 import resource
 import time
 from pathlib import Path
@@ -14,6 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 from .. import __version__
 from ..conventions import metadata_block
 from ..io.atomic import write_json
+from ..io.jsondoc import finite as _finite, read_json, round_floats  # noqa: F401 (the stages' names)
 from ..io.metrics import UNITS, split_timings, timing_path
 from ..paths import PatientPaths
 
@@ -62,26 +61,6 @@ class StageTimer:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def round_floats(obj: Any, digits: int = 6) -> Any:
-    """Round every float in a nested dict (metrics files stay short and diff-able)."""
-    if isinstance(obj, dict):
-        return {k: round_floats(v, digits) for k, v in obj.items()}
-    if isinstance(obj, float):
-        return round(obj, digits)
-    return obj
-
-
-def _finite(obj: Any) -> Any:
-    """Replace NaN/inf by None (JSON has no such numbers)."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
 def write_metrics(paths: PatientPaths, stage: str, metrics: dict) -> None:
     """DVC metrics file ``metrics/<stage>.json`` and its timings ``metrics/<stage>.timing.json``.
 
@@ -92,8 +71,3 @@ def write_metrics(paths: PatientPaths, stage: str, metrics: dict) -> None:
     accuracy, timings = split_timings(_finite(metrics))
     write_json(timing_path(paths.metrics(stage)), {**timings, "units": UNITS})
     write_json(paths.metrics(stage), accuracy)
-
-
-def read_json(path: str | Path) -> Any:
-    with open(path, encoding="utf-8") as fh:
-        return json.load(fh)

@@ -1,0 +1,234 @@
+#!/usr/bin/env python3
+"""Byte-identity of two pipeline runs: every output file with its sha256 and size, then the differences.
+
+    python scripts/compare_runs.py list RUN [--out MANIFEST.json]
+    python scripts/compare_runs.py compare RUN_A RUN_B [--name NAME] [--label-a A] [--label-b B]
+
+``RUN`` is the folder a run was made from: its ``data/output`` (the dataset, ``output_dir``) and
+``reports/`` (the tables stage's ``evaluate.tables.output_dir``) are listed, every regular file with its
+relative path, sha256 and size (:func:`room_pipeline.execution.manifest.sha256_file`).  Left out of the
+listing: the run records ``data/output/manifest.json`` and ``manifest.*.json`` beside them (they hold the
+config, library versions and platform; their ``files`` and ``config`` are compared apart, with
+:func:`room_pipeline.execution.manifest.compare_manifests`).
+
+``compare`` lists both runs and sorts every path into
+
+* identical: same sha256 and size;
+* timing only: the bytes differ, but parsed they differ only in fields that are wall or CPU times: the
+  ``metrics/*.timing.json`` files (the stages' timing files, :mod:`room_pipeline.io.metrics`), JSON leaves
+  under a key of :data:`room_pipeline.io.metrics.TIMING_KEYS` or named ``seconds`` / ``cpu_seconds``
+  (a pose method's time) or ``cpu_time_s``, CSV / Markdown / LaTeX table cells whose column header names a time
+  (``s/frame``, ``seconds``, ``time``);
+* different: anything else (a real behaviour change), and files present in one run only.
+
+It writes ``benchmarks/results/NAME.{md,json}`` (default NAME ``run_identity``) and exits 1 when any file
+is different.  Timings cannot be byte-identical between two runs, so they are the only exception.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "src"))
+
+from room_pipeline.execution.manifest import compare_manifests, sha256_file  # noqa: E402
+from room_pipeline.io.atomic import write_json, write_text  # noqa: E402
+from room_pipeline.io.metrics import TIMING_KEYS, TIMING_SUFFIX  # noqa: E402
+
+#: the folders of a run that hold its outputs
+PARTS = ("data/output", "reports")
+#: run records (config, versions, platform), compared apart
+RECORDS = re.compile(r"^data/output/manifest(\.[^/]*)?\.json$|^manifest\.[^/]*\.json$")
+#: JSON keys holding a time besides TIMING_KEYS (a pose method's wall and CPU seconds; the evaluation stages'
+#: cpu_time_s, which io.metrics.TIMING_KEYS does not list, so it stays in their DVC metrics files)
+EXTRA_TIMING_KEYS = frozenset({"seconds", "cpu_seconds", "cpu_time_s"})
+#: a table column holding a time
+TIME_COLUMN = re.compile(r"s/frame|seconds|\btime\b|_s$", re.I)
+
+
+def list_run(run: Path) -> list[dict]:
+    """Every output file of the run folder ``run`` (sorted by path): path, sha256, size."""
+    out = []
+    for part in PARTS:
+        base = run / part
+        if not base.is_dir():
+            continue
+        for p in sorted(base.rglob("*")):
+            rel = p.relative_to(run).as_posix()
+            if p.is_file() and not p.is_symlink() and not RECORDS.match(rel):
+                out.append({"path": rel, "sha256": sha256_file(p), "size": p.stat().st_size})
+    return sorted(out, key=lambda f: f["path"])
+
+
+def _json_leaves(obj, prefix=()):
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _json_leaves(v, prefix + (str(k),))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _json_leaves(v, prefix + (i,))
+    else:
+        yield prefix, obj
+
+
+def _is_timing_path(path: tuple) -> bool:
+    return any(isinstance(k, str) and (k in TIMING_KEYS or k in EXTRA_TIMING_KEYS) for k in path)
+
+
+def _json_diff(a: str, b: str) -> tuple[list[str], list[str]]:
+    """(differing timing leaves, differing other leaves) of two JSON texts."""
+    la, lb = dict(_json_leaves(json.loads(a))), dict(_json_leaves(json.loads(b)))
+    timing, other = [], []
+    for k in sorted(set(la) | set(lb), key=lambda t: tuple(map(str, t))):
+        if la.get(k, ...) != lb.get(k, ...):
+            (timing if _is_timing_path(k) else other).append(".".join(map(str, k)))
+    return timing, other
+
+
+def _rows(text: str, kind: str) -> list[list[str]]:
+    if kind == "csv":
+        return list(csv.reader(io.StringIO(text)))
+    if kind == "md":
+        return [[c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("|") else [line]
+                for line in text.splitlines()]
+    # LaTeX tabular rows: "a & b & c \\"
+    return [[c.strip() for c in line.rstrip().removesuffix("\\\\").split(" & ")] if " & " in line else [line]
+            for line in text.splitlines()]
+
+
+def _table_diff(a: str, b: str, kind: str) -> tuple[list[str], list[str]]:
+    """(differing cells in time columns, other differing cells or lines) of two table files."""
+    ra, rb = _rows(a, kind), _rows(b, kind)
+    if len(ra) != len(rb):
+        return [], [f"{len(ra)} vs {len(rb)} rows"]
+    timing, other, header = [], [], None
+    for i, (x, y) in enumerate(zip(ra, rb)):
+        if len(x) > 1 and (header is None or len(x) != len(header)):
+            header = x                       # the first row of a table (or of a new table) names its columns
+        if x == y:
+            continue
+        if len(x) != len(y) or header is None or len(x) != len(header):
+            other.append(f"line {i + 1}")
+            continue
+        for j, (u, v) in enumerate(zip(x, y)):
+            if u != v:
+                (timing if TIME_COLUMN.search(header[j]) else other).append(f"line {i + 1} column '{header[j]}'")
+    return timing, other
+
+
+def classify(run_a: Path, run_b: Path, rel: str) -> tuple[str, list[str]]:
+    """'timing' or 'different' for a file whose bytes differ, with the differing fields."""
+    if rel.endswith(TIMING_SUFFIX):
+        return "timing", ["(a stage timing file)"]
+    a = (run_a / rel).read_text(encoding="utf-8", errors="replace")
+    b = (run_b / rel).read_text(encoding="utf-8", errors="replace")
+    suffix = Path(rel).suffix
+    try:
+        if suffix == ".json":
+            timing, other = _json_diff(a, b)
+        elif suffix in (".csv", ".md", ".tex"):
+            timing, other = _table_diff(a, b, suffix[1:])
+        else:
+            return "different", ["binary or unparsed file"]
+    except (ValueError, json.JSONDecodeError) as exc:
+        return "different", [f"not parseable ({exc})"]
+    return ("different", other) if other or not timing else ("timing", timing)
+
+
+def compare(run_a: Path, run_b: Path) -> dict:
+    fa = {f["path"]: f for f in list_run(run_a)}
+    fb = {f["path"]: f for f in list_run(run_b)}
+    identical, timing, different = [], {}, {}
+    for p in sorted(set(fa) | set(fb)):
+        if p not in fb or p not in fa:
+            different[p] = [f"only in {'the first' if p in fa else 'the second'} run"]
+        elif (fa[p]["sha256"], fa[p]["size"]) == (fb[p]["sha256"], fb[p]["size"]):
+            identical.append(p)
+        else:
+            kind, fields = classify(run_a, run_b, p)
+            (timing if kind == "timing" else different)[p] = fields
+    records = {}
+    for m in sorted(run_a.glob("manifest.*.json")):
+        other = run_b / m.name
+        if other.is_file():
+            records[m.name] = compare_manifests(json.loads(m.read_text()), json.loads(other.read_text()))
+    return {"files": len(set(fa) | set(fb)), "identical": len(identical), "timing_only": timing,
+            "different": different, "bytes_a": sum(f["size"] for f in fa.values()),
+            "bytes_b": sum(f["size"] for f in fb.values()), "run_records": records,
+            "manifest_a": list(fa.values()), "manifest_b": list(fb.values())}
+
+
+def report_md(res: dict, label_a: str, label_b: str, command: str) -> str:
+    n_t, n_d = len(res["timing_only"]), len(res["different"])
+    L = [f"# Byte-identity of two runs: {label_a} vs {label_b}", "", f"Command: `{command}`", "",
+         f"- files: {res['files']} ({res['bytes_a']} bytes in the first run, {res['bytes_b']} in the second)",
+         f"- byte-identical: **{res['identical']}**",
+         f"- differing only in timing fields (wall / CPU seconds): {n_t}",
+         f"- different otherwise, or in one run only: **{n_d}**", "",
+         "Result: " + ("**identical** apart from the timings listed below" if not n_d else "**NOT identical**"),
+         ""]
+    if res["run_records"]:
+        L += ["## Run records (`manifest.*.json`: files and config; versions and platform not compared)", ""]
+        for name, diffs in res["run_records"].items():
+            L.append(f"- {name}: " + ("files and config agree" if not diffs else f"{len(diffs)} differences: "
+                                      + "; ".join(diffs[:10])))
+        L.append("")
+    if res["timing_only"]:
+        L += ["## Files differing only in timing fields", "", "| file | differing fields |", "|---|---|"]
+        for p, fields in res["timing_only"].items():
+            shown = ", ".join(f"`{f}`" for f in fields[:6]) + (f" (+{len(fields) - 6} more)" if len(fields) > 6 else "")
+            L.append(f"| {p} | {shown} |")
+        L.append("")
+    if res["different"]:
+        L += ["## Different files", "", "| file | what differs |", "|---|---|"]
+        for p, fields in res["different"].items():
+            L.append(f"| {p} | {'; '.join(fields[:6])} |")
+        L.append("")
+    return "\n".join(L)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    ls = sub.add_parser("list", help="every output file of a run with its sha256 and size")
+    ls.add_argument("run", type=Path)
+    ls.add_argument("--out", type=Path)
+    cp = sub.add_parser("compare", help="compare the outputs of two runs")
+    cp.add_argument("run_a", type=Path)
+    cp.add_argument("run_b", type=Path)
+    cp.add_argument("--name", default="run_identity")
+    cp.add_argument("--label-a", default="A")
+    cp.add_argument("--label-b", default="B")
+    args = ap.parse_args(argv)
+    if args.cmd == "list":
+        files = list_run(args.run)
+        if args.out:
+            write_json(args.out, {"run": str(args.run), "files": files})
+        else:
+            for f in files:
+                print(f"{f['sha256']}  {f['size']:>10}  {f['path']}")
+        return 0
+    for r in (args.run_a, args.run_b):
+        if not (r / PARTS[0]).is_dir():
+            print(f"room: error: {r}: no {PARTS[0]} folder (not a run folder)", file=sys.stderr)
+            return 2
+    res = compare(args.run_a, args.run_b)
+    command = f"python scripts/compare_runs.py compare {args.run_a} {args.run_b} --name {args.name} " \
+              f"--label-a {args.label_a} --label-b {args.label_b}"
+    md = report_md(res, args.label_a, args.label_b, command)
+    out = ROOT / "benchmarks" / "results"
+    write_text(out / f"{args.name}.md", md + "\n")
+    write_json(out / f"{args.name}.json", {**res, "command": command, "label_a": args.label_a,
+                                           "label_b": args.label_b})
+    print(md)
+    return 1 if res["different"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,336 @@
+"""The trachea's root on the medial skeleton: where the route enters the airway tree.
+
+Helpers of :func:`room_pipeline.anatomy.medial_axis.extract_medial_axis` (step 3 of its method), kept
+apart because they are one job -- reading the top of the skeleton -- with their own measured thresholds:
+
+- a scan cut just above the carina (the skeleton divides at the cut into two downward arms): the arms
+  (:func:`_root_arms`), their headings (:func:`_arm_headings`), where they part (:func:`_arms_split`) and
+  the middle of the cut cross-section (:func:`_cut_entry`);
+- a flattened trachea (its medial set a sheet): the top cross-section's centre (:func:`_top_centre`), the
+  lumen's cross-section aspect ratio (:func:`_cross_section_aspect`, threshold :data:`FLAT_ASPECT`), the
+  sheet test (:func:`_sheet_like`, :data:`SHEET_RATIO`), the sheet (:func:`_trachea_sheet`) and the one
+  trunk across it (:func:`_sheet_trunk`).
+
+Units: metres (the SDF's world frame), radii as ``-sdf``; ``field`` is the medial axis's interpolated SDF.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+from .sdf_field import SdfField as _Field
+
+def _root_arms(root: int, in_skel: np.ndarray, parent: np.ndarray, dist: np.ndarray, pts: np.ndarray,
+               rad: np.ndarray, wide_radius: float) -> dict[int, tuple[float, float, float]]:
+    """For each skeleton child of ``root`` (an arm: the subtree through it), metres: the longest path from the
+    root through it; the longest such path whose points from the root on all have radius >= ``wide_radius``;
+    the largest distance of its points from the longest arm (inf for that arm)."""
+    nodes = np.flatnonzero(in_skel)
+    nodes = nodes[np.argsort(dist[nodes], kind="stable")]        # parents before children
+    arc = np.zeros(len(pts))
+    arm = np.full(len(pts), -1, dtype=np.int64)
+    wide = np.zeros(len(pts), dtype=bool)
+    wide[root] = True
+    out: dict[int, list[float]] = {}
+    for n in nodes:
+        p = int(parent[n])
+        if p < 0:
+            continue
+        arc[n] = arc[p] + float(np.linalg.norm(pts[n] - pts[p]))
+        arm[n] = n if p == root else arm[p]
+        wide[n] = wide[p] and rad[n] >= wide_radius
+        o = out.setdefault(int(arm[n]), [0.0, 0.0])
+        o[0] = max(o[0], float(arc[n]))
+        if wide[n]:
+            o[1] = max(o[1], float(arc[n]))
+    if not out:
+        return {}
+    longest = max(out, key=lambda k: out[k][0])
+    kd = cKDTree(pts[arm == longest])
+    res = {}
+    for k, (length, wide_len) in out.items():
+        far = np.inf if k == longest else float(kd.query(pts[arm == k])[0].max())
+        res[k] = (length, wide_len, far)
+    return res
+
+
+def _top_centre(root: int, trachea: np.ndarray, pts: np.ndarray, r_max: float
+                ) -> tuple[int, np.ndarray, np.ndarray, float]:
+    """The middle of the trachea's top cross-section, the trachea's axis there, and how its medial points
+    spread below the top.
+
+    The top slab is the trachea points within ``r_max`` below ``root``'s height.  Their horizontal position is
+    fitted as a straight line in height (a leaning trachea's axis); the middle is the slab point nearest that
+    line at ``root``'s height and the axis is the line's downward direction.  Below the top slab (``r_max`` to
+    ``2.5 r_max`` down: a closed end's medial cone lies within ``r_max`` of it), the trachea points and their
+    largest distance from the line are returned: about a voxel on a round trachea, whose medial set is its
+    axis; about the half-width less the edge radius on a flattened one, whose medial set is a sheet."""
+    top = pts[root, 2]
+    band = trachea[pts[trachea, 2] >= top - r_max]
+    q = pts[band]
+    A = np.stack([np.ones(len(q)), q[:, 2] - top], axis=1)
+    coef = np.linalg.lstsq(A, q[:, :2], rcond=None)[0] if len(q) >= 2 else np.array([q[0, :2], [0.0, 0.0]])
+    c = np.array([coef[0, 0], coef[0, 1], top])
+    down = -np.array([coef[1, 0], coef[1, 1], 1.0])
+    z = pts[trachea, 2]
+    below = trachea[(z < top - r_max) & (z >= top - 2.5 * r_max)]
+    qb = pts[below]
+    line = np.stack([np.ones(len(qb)), qb[:, 2] - top], axis=1) @ coef
+    spread = float(np.linalg.norm(qb[:, :2] - line, axis=1).max()) if len(qb) else 0.0
+    return int(band[np.argmin(np.linalg.norm(q - c, axis=1))]), down / np.linalg.norm(down), below, spread
+
+
+#: a root candidate with two wide arms is a bifurcation at a cut entry when both arms descend at least this
+#: much below the horizontal (over their first 3 root radii): 56 deg at the synthetic carina, 31 deg with the
+#: trachea leaning 25 deg, 7 deg for the top of an arch (tests/test_medial_axis.py)
+ENTRY_ARM_DESCENT_DEG = 20.0
+SPLIT_FACTOR = 1.0
+
+
+def _arm_headings(root: int, arms: list[int], in_skel: np.ndarray, parent: np.ndarray, dist: np.ndarray,
+                  pts: np.ndarray, reach: float) -> list[np.ndarray]:
+    """Unit direction from ``root`` to the farthest point (straight-line distance <= ``reach``) of each arm
+    (the skeleton subtree through each child ``arms[k]`` of the root)."""
+    nodes = np.flatnonzero(in_skel)
+    nodes = nodes[np.argsort(dist[nodes], kind="stable")]
+    arm = np.full(len(pts), -1, dtype=np.int64)
+    for a in arms:
+        arm[a] = a
+    for n in nodes:
+        p = int(parent[n])
+        if p >= 0 and arm[n] < 0 and arm[p] >= 0:
+            arm[n] = arm[p]
+    out = []
+    for a in arms:
+        q = pts[arm == a] - pts[root]
+        d = np.linalg.norm(q, axis=1)
+        ok = d <= reach
+        v = q[ok][np.argmax(d[ok])] if ok.any() else q[np.argmin(d)]
+        out.append(v / max(float(np.linalg.norm(v)), 1e-12))
+    return out
+
+
+def _arms_split(root: int, arms: list[int], in_skel: np.ndarray, parent: np.ndarray, dist: np.ndarray,
+                pts: np.ndarray, field: _Field) -> tuple[int, int, np.ndarray]:
+    """Where two arms of ``root`` part: along each arm's longest path from the root, at equal arc lengths,
+    the two points still share one lumen ball while the lumen depth at their midpoint is at least half their
+    distance; the first arc length where that fails is the split.  Returns each path's first node at or past
+    it and the midpoint there (the bifurcation)."""
+    paths = []
+    for a in arms:
+        sub = np.zeros(len(pts), dtype=bool)
+        sub[a] = True
+        nodes = np.flatnonzero(in_skel)
+        for n in nodes[np.argsort(dist[nodes], kind="stable")]:
+            if parent[n] >= 0 and sub[parent[n]]:
+                sub[n] = True
+        far = int(np.flatnonzero(sub)[np.argmax(dist[sub])])
+        chain = [far]
+        while chain[-1] != a:
+            chain.append(int(parent[chain[-1]]))
+        chain = [root] + chain[::-1]
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts[chain], axis=0), axis=1))])
+        paths.append((np.array(chain), arc))
+    (ca, sa), (cb, sb) = paths
+    step = 0.25 * float(np.exp(np.mean(np.log(np.linalg.norm(field.A, axis=0)))))
+    s = np.arange(0.0, min(sa[-1], sb[-1]), step)
+    pa = np.stack([np.interp(s, sa, pts[ca, k]) for k in range(3)], axis=1)
+    pb = np.stack([np.interp(s, sb, pts[cb, k]) for k in range(3)], axis=1)
+    mid = 0.5 * (pa + pb)
+    depth = -field.sample(field.to_index(mid))[:, 0]
+    bad = np.flatnonzero(depth < SPLIT_FACTOR * np.linalg.norm(pa - pb, axis=1))
+    k = int(bad[0]) if len(bad) else len(s) - 1
+    k = max(k - 1, 0)
+    a_k = int(ca[min(np.searchsorted(sa, s[k]) + 0, len(ca) - 1)])
+    b_k = int(cb[min(np.searchsorted(sb, s[k]) + 0, len(cb) - 1)])
+    a_k = a_k if a_k != root else int(ca[1])
+    b_k = b_k if b_k != root else int(cb[1])
+    return a_k, b_k, mid[k]
+
+
+def _cut_entry(root: int, pts: np.ndarray, rad: np.ndarray, field: _Field, voxel: float) -> np.ndarray | None:
+    """The middle of the lumen's top cross-section above a root candidate when that top is a cut (the scan
+    stops there: the lumen runs into the volume's border), else None.
+
+    The lumen voxels within 3 candidate radii of it sideways and above it are taken; their top slab (one
+    voxel thick) is the cross-section.  It is a cut when at least half its voxels lie on the volume's border
+    and its area is at least half the candidate's disc (a closed end's top is a small cap; a segmentation
+    that stops with a flat top inside the volume is not read as a cut).  Raises :class:`InputError` when the cut holds no trachea: the
+    cross-section is split into separate airways or its middle lies outside the lumen (cut at or below the
+    carina), or the straight way from it down to the candidate leaves the lumen.
+    """
+    c, r = pts[root], float(rad[root])
+    R = 3.0 * r
+    shape = field.shape
+    corners = np.array([[c[0] + sx * R, c[1] + sy * R, z] for sx in (-1, 1) for sy in (-1, 1)
+                        for z in (c[2] - voxel, c[2] + 1e3)])   # up to the grid's top
+    ij = field.to_index(corners)
+    lo = np.clip(np.floor(ij.min(axis=0)).astype(int), 0, shape - 1)
+    hi = np.clip(np.ceil(ij.max(axis=0)).astype(int) + 1, 1, shape)
+    sdf = field.vals[:, 0].reshape(tuple(shape))
+    blk = sdf[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    idx = np.argwhere(blk < 0)
+    if len(idx) == 0:
+        return None
+    w = field.to_world((idx + lo).astype(np.float64))
+    sel = (np.hypot(w[:, 0] - c[0], w[:, 1] - c[1]) <= R) & (w[:, 2] >= c[2] - 0.5 * voxel)
+    if not sel.any():
+        return None
+    w, idx = w[sel], idx[sel]
+    top = w[:, 2] >= w[:, 2].max() - 0.5 * voxel
+    cell = float(abs(np.linalg.det(field.A))) / voxel      # voxel volume / thickness: one voxel's area
+    area = float(top.sum()) * cell
+    gi = idx[top] + lo
+    on_border = np.mean(np.any((gi == 0) | (gi == shape - 1), axis=1))
+    if area < 0.5 * np.pi * r * r or on_border < 0.5:
+        return None                                      # a closed end (or no border there): no cut
+    q = w[top]
+    where = ", ".join(f"{v / 1e-3:.1f}" for v in q.mean(axis=0))
+    # pieces of the cross-section (voxels joined within 1.5 voxels)
+    ncomp, lab = csgraph.connected_components(cKDTree(q).sparse_distance_matrix(cKDTree(q), 1.5 * voxel),
+                                              directed=False)
+    sizes = np.bincount(lab)
+    if ncomp > 1 and np.sort(sizes)[-2] >= 0.2 * sizes.max():
+        raise InputError(f"medial axis: no trachea-like root: the scan's top cross-section at ({where}) mm holds "
+                         f"{int(np.sum(sizes >= 0.2 * sizes.max()))} separate airways (cut at or below the carina)")
+    e = q[lab == int(np.argmax(sizes))].mean(axis=0)
+    if not field.sample(field.to_index(e[None]))[0, 0] < 0:
+        raise InputError(f"medial axis: no trachea-like root: the middle of the scan's top cross-section "
+                         f"({where}) mm lies outside the lumen (cut at or below the carina)")
+    return e
+
+
+def _cross_section_aspect(field: _Field, top: np.ndarray, axis: np.ndarray, r_max: float, voxel: float
+                          ) -> float:
+    """The trachea lumen's cross-section aspect ratio (long / short axis, 1 for a circle): the median over
+    three cross-sections normal to ``axis`` at 0.5, 1.0 and 1.5 ``r_max`` below ``top`` (the trachea's
+    most superior wide medial point: below the cut or the closed end, above a carina just below the cut).  Each is the SDF sampled on a half-voxel grid of the plane
+    (6 ``r_max`` square), the connected lumen region at the axis (else the largest), and the square root of
+    its second moments' eigenvalue ratio (for an ellipse exactly its axis ratio).  A section whose region
+    fills less than 0.9 of its convex hull (two lobes: a trachea cut just above the carina, sectioned in its
+    bifurcation) is skipped; with none left the ratio is 1 (no switch)."""
+    a = axis / np.linalg.norm(axis)
+    u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(a, u)
+    h = 0.5 * voxel
+    g = np.arange(-3.0 * r_max, 3.0 * r_max + 0.5 * h, h)
+    S, T = np.meshgrid(g, g, indexing="ij")
+    out = []
+    for depth in (0.5, 1.0, 1.5):
+        c = top + depth * r_max * a
+        P = c + S.reshape(-1, 1) * u + T.reshape(-1, 1) * v
+        inside = (field.sample(field.to_index(P))[:, 0] < 0).reshape(S.shape)
+        lab, n = ndimage.label(inside)
+        if n == 0:
+            continue
+        k = lab[len(g) // 2, len(g) // 2]
+        if k == 0:
+            k = int(np.argmax(np.bincount(lab.ravel())[1:])) + 1
+        sel = lab == k
+        if sel.sum() < 8:
+            continue
+        q = np.stack([S[sel], T[sel]], axis=1)
+        from scipy.spatial import ConvexHull
+        if sel.sum() * h * h < 0.9 * ConvexHull(q).volume:
+            continue                  # not convex (two lobes: the section reaches the carina's bifurcation)
+        ev = np.linalg.eigvalsh(np.cov(q.T))
+        out.append(float(np.sqrt(ev[1] / max(ev[0], 1e-30))))
+    return float(np.median(out)) if out else 1.0
+
+
+#: cross-section aspect ratio (long / short axis) above which a trachea is flattened (its medial set a sheet),
+#: measured by ``python benchmarks/anatomy_trachea_aspect.py`` (benchmarks/results/anatomy_trachea_aspect.md):
+#: the seven shared real tracheas 1.10-1.39 (CASE091's, narrowing up to the cut, 1.388), synthetic round and
+#: 16x14 mm ones <= 1.146; synthetic 20x12 mm >= 1.565 (leaning 20 deg), 24x10 mm >= 2.27.  The threshold is
+#: their geometric mean: 6 % from either side.  The sheet-fraction condition (> 0.5) is the second guard
+#: (CASE091 0.30, flat ones >= 0.95).  The old measure (medial spread / radius > 0.75) did not separate them
+#: (AirQuant 1.00, 20x12 mm 0.96).
+FLAT_ASPECT = 1.47
+
+
+#: second / first eigenvalue of the local medial points' covariance above which they form a sheet
+SHEET_RATIO = 0.25
+
+
+def _sheet_like(i: np.ndarray, kd: cKDTree, pts: np.ndarray, rad: np.ndarray, voxel: float) -> np.ndarray:
+    """Whether the medial set is locally two-dimensional at points ``i``: the cluster points within the point's
+    own radius (at least 2 voxels; at least 6 of them) spread in a second direction, the second eigenvalue of
+    their covariance > 0.25 x the first (a disc gives 1, the half-disc at a sheet's edge 0.28, the scattered
+    points along a tube's axis ~0.02)."""
+    out = np.zeros(len(i), dtype=bool)
+    for k, (n, nb) in enumerate(zip(i, kd.query_ball_point(pts[i], np.maximum(rad[i], 2.0 * voxel)))):
+        if len(nb) < 6:
+            continue
+        q = pts[nb] - pts[nb].mean(axis=0)
+        ev = np.linalg.eigvalsh(q.T @ q / len(nb))
+        out[k] = ev[1] > SHEET_RATIO * ev[2]
+    return out
+
+
+def _trachea_sheet(root: int, G, pts: np.ndarray, rad: np.ndarray, voxel: float,
+                   params: Any) -> np.ndarray:   # params: medial_axis.MedialAxisParams
+    """The medial sheet of a flattened trachea: the points where the medial set is locally two-dimensional
+    (:func:`_sheet_like`), connected to ``root`` through such points, and the points within TEASAR's
+    invalidation distance of them."""
+    kd = cKDTree(pts)
+    sheet = np.zeros(len(pts), dtype=bool)
+    seen = np.zeros(len(pts), dtype=bool)
+    front = np.array([root])
+    seen[root] = True
+    G = G.tocsr()
+    while len(front):
+        ok = front[_sheet_like(front, kd, pts, rad, voxel)]
+        sheet[ok] = True
+        nxt = np.unique(np.concatenate([G.indices[G.indptr[i]:G.indptr[i + 1]] for i in ok])) if len(ok) else []
+        nxt = np.asarray(nxt, dtype=np.int64)
+        front = nxt[~seen[nxt]]
+        seen[front] = True
+    out = sheet.copy()
+    idx = np.flatnonzero(sheet)
+    for lst in kd.query_ball_point(pts[idx], params.invalidation_scale * rad[idx]
+                                   + params.invalidation_voxels * voxel):
+        out[lst] = True
+    return np.flatnonzero(out)
+
+
+def _sheet_trunk(root: int, on_sheet: np.ndarray, pts: np.ndarray, rad: np.ndarray, axis: np.ndarray,
+                 voxel: float) -> np.ndarray:
+    """The trunk across a flattened trachea's medial sheet: from ``root`` down, steps of half the root's radius
+    (>= a voxel), each to the sheet point nearest the centroid of the sheet points in the next cross-section
+    (a slab one step thick across the current direction, within the top's half-width of the path); the
+    direction follows the centroids.  Ends where a cross-section holds fewer than 3 sheet points or the path
+    would turn by more than 45 degrees in one step (the carina)."""
+    h = max(0.5 * float(rad[root]), voxel)
+    idx = np.flatnonzero(on_sheet)
+    if len(idx) == 0:
+        return np.array([root], dtype=np.int64)
+    q = pts[idx]
+    c = pts[root].copy()
+    d = axis.copy()
+    top = q[np.abs((q - c) @ d) <= 2.0 * h]
+    half = float(np.linalg.norm((top - c) - np.outer((top - c) @ d, d), axis=1).max()) + voxel if len(top) else 0.0
+    trunk = [root]
+    for _ in range(int(np.ceil(10.0 * np.ptp(q, axis=0).max() / h)) + 1):
+        g = c + h * d
+        off = q - g
+        ax = off @ d
+        lat = np.linalg.norm(off - np.outer(ax, d), axis=1)
+        sel = (np.abs(ax) <= 0.5 * h) & (lat <= half)
+        if sel.sum() < 3:
+            break
+        m = q[sel].mean(axis=0)
+        step = m - c
+        if not np.linalg.norm(step) > 0.25 * h or step @ d < 0.7 * np.linalg.norm(step):
+            break                                   # stalled, or turning (> 45 deg): the carina
+        d = step / np.linalg.norm(step)
+        c = m
+        n = int(idx[np.argmin(np.linalg.norm(q - m, axis=1))])
+        if n not in trunk:
+            trunk.append(n)
+    return np.array(trunk, dtype=np.int64)
