@@ -171,9 +171,13 @@ def run_eval(cfg, key: str) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     evaluate_depth.run(cfg, key)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    from room_pipeline.io.metrics import read_with_timings
+
     patient, seq = key.split("/")
-    ev = PatientPaths(Path(cfg.output_dir), patient).evaluation(seq)          # <output_dir>/evaluation/<p>/<s>/
-    doc = json.loads((ev / "depth.json").read_text())
+    paths = PatientPaths(Path(cfg.output_dir), patient)
+    ev = paths.evaluation(seq)          # <output_dir>/evaluation/<p>/<s>/
+    # depth.json holds no timing: the rows' seconds per frame are in the stage's timing file
+    doc = read_with_timings(paths.eval(seq).depth, paths.timings(f"evaluate_depth_{seq}"))
     print(f"evaluate_depth {key}: {doc['n_frames']} frames in {wall:.1f} s ({cpu:.1f} CPU s)", flush=True)
     return {"key": key, "frames": doc["n_frames"], "stride": int(cfg.depth.frame_stride), "wall_s": wall,
             "cpu_s": cpu, "methods": doc["methods"], "errors_csv": str(ev / "depth_errors.csv")}

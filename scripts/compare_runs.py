@@ -45,8 +45,8 @@ from room_pipeline.io.metrics import TIMING_KEYS, TIMING_SUFFIX  # noqa: E402
 PARTS = ("data/output", "reports")
 #: run records (config, versions, platform), compared apart
 RECORDS = re.compile(r"^data/output/manifest(\.[^/]*)?\.json$|^manifest\.[^/]*\.json$")
-#: JSON keys holding a time besides TIMING_KEYS (a pose method's wall and CPU seconds; the evaluation stages'
-#: cpu_time_s, which io.metrics.TIMING_KEYS does not list, so it stays in their DVC metrics files)
+#: JSON keys holding a time (a pose method's wall and CPU seconds, the evaluation stages' cpu_time_s): TIMING_KEYS
+#: lists them now (the evaluation files and DVC metrics no longer hold them); kept for runs made before that
 EXTRA_TIMING_KEYS = frozenset({"seconds", "cpu_seconds", "cpu_time_s"})
 #: a table column holding a time
 TIME_COLUMN = re.compile(r"s/frame|seconds|\btime\b|_s$", re.I)

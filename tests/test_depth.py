@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
 from room_pipeline.depth import metrics as dm
-from room_pipeline.io.metrics import read_metrics_file
+from room_pipeline.io.metrics import read_metrics_file, read_with_timings, split_timings
 from room_pipeline.depth.estimators import (DepthParams, Estimator, Frame, SequenceInfo, evaluate, sequence_samples,
                                             try_create)
 from room_pipeline.depth.physics import (LightModel, PhysicsParams, camera_cos, physics_depth, srgb8_to_linear)
@@ -352,7 +352,7 @@ def test_evaluate_depth_stage_contract(tmp_path):
     assert set(rows) == {"physics", "physics_median", "nanny", "nanny_median", "depth_anything_v2"}
     for name, row in rows.items():
         assert set(row) >= {"available", "reason", "L1_mm", "AbsRel", "RMSE_mm", "delta1", "delta2", "delta3",
-                            "n_frames", "seconds_per_frame", "scaling"}, name
+                            "n_frames", "scaling"}, name
     assert rows["physics"]["available"] and rows["physics"]["scaling"] == "metric" and rows["physics"]["n_frames"] == 3
     assert rows["physics_median"]["scaling"] == "median" and rows["physics"]["reason"] is None
     dav = rows["depth_anything_v2"]
@@ -360,9 +360,40 @@ def test_evaluate_depth_stage_contract(tmp_path):
     assert rows["nanny"]["n_nonfinite_pixels"] > 0 and rows["nanny"]["AbsRel"] < 1e-6
     csv = (tmp_path / "out" / "evaluation" / "patient_000" / "sequence_000" / "depth_errors.csv").read_text().splitlines()
     assert len(csv) == 4 and csv[0].startswith("frame,physics_L1_mm") and csv[1].startswith("frame_0000,")
+    # no timing in the data files: the rows' seconds are in the stage's timing file, read back by read_with_timings
+    ev = tmp_path / "out" / "evaluation" / "patient_000" / "sequence_000"
+    timing = tmp_path / "out" / "patient_000" / "metrics" / "evaluate_depth_sequence_000.timing.json"
+    assert not split_timings(doc)[1] and not any(c.endswith("_seconds") for c in csv[0].split(","))
+    tim = json.loads(timing.read_text())
+    assert len(tim["methods"]["physics"]["frame_seconds"]) == 3 and tim["cpu_time_s"] >= 0
+    merged = read_with_timings(ev / "depth.json", timing)
+    assert merged["methods"]["physics"]["seconds_per_frame"] >= 0 and merged["methods"]["physics"]["AbsRel"] is not None
+    assert "seconds_per_frame" in merged["methods"]["depth_anything_v2"]
+    assert not split_timings(json.loads(timing.with_name("evaluate_depth_sequence_000.json").read_text()))[1]
     assert {str(x) for x in evaluate_depth.outputs(cfg, "patient_000/sequence_000")} == {
         str(tmp_path / "out" / "evaluation" / "patient_000" / "sequence_000" / "depth.json"), str(tmp_path / "out" / "evaluation" / "patient_000" / "sequence_000" / "depth_errors.csv"),
         str(tmp_path / "out" / "patient_000" / "metrics" / "evaluate_depth_sequence_000.json")}
+
+
+def test_evaluate_depth_outputs_hold_no_timing_and_repeat_byte_for_byte(tmp_path):
+    """Two runs with the image-blind baselines: depth.json, depth_errors.csv and the DVC metric are the same
+    bytes; the rows' timings are in metrics/evaluate_depth_<seq>.timing.json."""
+    from room_pipeline.stages import evaluate_depth
+
+    write_sequence(tmp_path / "out" / "patient_001" / "sequence_000", n=3, size=24)
+    cfg = depth_cfg(tmp_path, methods=["constant", "tube_prior"])
+    ev = tmp_path / "out" / "evaluation" / "patient_001" / "sequence_000"
+    met = tmp_path / "out" / "patient_001" / "metrics"
+    files = [ev / "depth.json", ev / "depth_errors.csv", met / "evaluate_depth_sequence_000.json"]
+    evaluate_depth.run(cfg, "patient_001/sequence_000")
+    first = [f.read_bytes() for f in files]
+    evaluate_depth.run(cfg, "patient_001/sequence_000")
+    assert [f.read_bytes() for f in files] == first
+    for f in files[0], files[2]:
+        assert split_timings(json.loads(f.read_text()))[1] == {}, f
+    assert json.loads(files[0].read_text())["methods"]["constant"]["available"]
+    tim = json.loads((met / "evaluate_depth_sequence_000.timing.json").read_text())
+    assert len(tim["methods"]["tube_prior"]["frame_seconds"]) == 3 and tim["wall_time_s"] > 0
 
 
 def test_evaluate_depth_on_a_sequence_without_valid_pixels(tmp_path):
@@ -455,8 +486,13 @@ def test_train_depth_stage_contract_and_evaluate_uses_it(tmp_path):
     m = train_depth.run(cfg, "patient_000")
     assert m["available"]
     doc = read_metrics_file(tmp_path / "out" / "patient_000" / "metrics" / "train_depth.json")   # + timings
-    ev = json.loads((tmp_path / "out" / "evaluation" / "patient_000" / "depth_finetune.json").read_text())
-    assert ev["datasets"] == doc["datasets"] and "times_s" not in json.dumps(ev)
+    ft = tmp_path / "out" / "evaluation" / "patient_000" / "depth_finetune.json"
+    ev = json.loads(ft.read_text())
+    # no timing in the tables' input: its rows' seconds are in train_depth.timing.json under the same keys
+    assert split_timings(ev)[1] == {} and ev["datasets"] == split_timings(doc["datasets"])[0]
+    timing = tmp_path / "out" / "patient_000" / "metrics" / "train_depth.timing.json"
+    assert read_with_timings(ft, timing)["datasets"] == doc["datasets"]
+    assert doc["datasets"]["phantom_held_out"]["after"]["seconds_per_frame"] >= 0
     ds = doc["datasets"]
     assert set(ds) == {"phantom_held_out", "simcol"}      # other_anatomy: evaluate_depth + tables
     held = ds["phantom_held_out"]

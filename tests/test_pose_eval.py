@@ -487,6 +487,33 @@ def test_evaluate_pose_and_tables_stages(tmp_path, textured):
         tables.run(cfg, "nobody")
 
 
+def test_evaluate_pose_outputs_hold_no_timing_and_repeat_byte_for_byte(tmp_path, textured):
+    """Two runs on the same frames (orb_vo and the trivial baselines): pose.json, pose_errors.csv and the DVC
+    metric are the same bytes; every wall / CPU time sits in metrics/evaluate_pose_<seq>.timing.json."""
+    from room_pipeline.io.metrics import read_with_timings, split_timings
+    from room_pipeline.stages import evaluate_pose
+
+    images, poses = textured
+    cfg = make_cfg(tmp_path, methods=("orb_vo",), max_frames=5)
+    write_sequence(tmp_path / "out" / "p0" / "sequence_000", images, poses, CAM)
+    ev = tmp_path / "out" / "evaluation" / "p0" / "sequence_000"
+    met = tmp_path / "out" / "p0" / "metrics"
+    files = [ev / "pose.json", ev / "pose_errors.csv", met / "evaluate_pose_sequence_000.json"]
+    evaluate_pose.run(cfg, "p0/sequence_000")
+    first = [f.read_bytes() for f in files]
+    evaluate_pose.run(cfg, "p0/sequence_000")
+    assert [f.read_bytes() for f in files] == first
+    for f in files[0], files[2]:
+        assert split_timings(json.loads(f.read_text()))[1] == {}, f
+    assert not any("second" in c or "time" in c for c in files[1].read_text().splitlines()[0].split(","))
+    timing = met / "evaluate_pose_sequence_000.timing.json"
+    tim = json.loads(timing.read_text())
+    assert tim["cpu_time_s"] >= 0 and tim["methods"]["orb_vo"]["info"]["cpu_seconds"] >= 0
+    merged = read_with_timings(files[0], timing)
+    assert merged["methods"]["orb_vo"]["seconds_per_frame"] >= 0 and merged["methods"]["orb_vo"]["RRA@5"] >= 0
+    assert merged["methods"]["identity"]["seconds"] >= 0 and merged["methods"]["identity"]["info"]["baseline"]
+
+
 def test_tables_from_hand_made_files(tmp_path):
     from room_pipeline.stages import tables
 

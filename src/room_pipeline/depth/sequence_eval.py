@@ -32,10 +32,11 @@ def nan_row(scaling: str, reason: str) -> dict:
 
 
 def errors_csv(rows: dict, frame_names: list) -> str:
-    """Per-frame CSV text: frame, then <row>_<metric> and <row>_seconds for every row."""
+    """Per-frame CSV text: frame, then <row>_<metric> and <row>_n_valid for every row (no times: the per-frame
+    seconds are ``frame_seconds`` in :func:`depth_document`, which the stage moves to its timing file)."""
     cols = ["frame"]
     for name in rows:
-        cols += [f"{name}_{k}" for k in METRIC_KEYS] + [f"{name}_n_valid", f"{name}_seconds"]
+        cols += [f"{name}_{k}" for k in METRIC_KEYS] + [f"{name}_n_valid"]
     out = io.StringIO()
     out.write(",".join(cols) + "\n")
 
@@ -46,7 +47,7 @@ def errors_csv(rows: dict, frame_names: list) -> str:
         vals = [frame]
         for row in rows.values():
             fe = row.frames[i]
-            vals += [fmt(getattr(fe, k)) for k in METRIC_KEYS] + [str(fe.n_valid), fmt(row.seconds[i])]
+            vals += [fmt(getattr(fe, k)) for k in METRIC_KEYS] + [str(fe.n_valid)]
         out.write(",".join(vals) + "\n")
     return out.getvalue()
 
@@ -82,13 +83,17 @@ def method_rows(rows: dict, unavailable: dict, p: DepthParams) -> dict:
     return methods
 
 
-def depth_document(methods: dict, samples: list, p: DepthParams, described: dict, wall_time_s: float,
-                   metadata: dict) -> dict:
-    """``depth.json`` (before NaN -> null): methods, units, valid range, frames, protocol, provenance."""
+def depth_document(methods: dict, samples: list, p: DepthParams, described: dict, metadata: dict,
+                   rows: dict | None = None) -> dict:
+    """``depth.json`` (before NaN -> null): methods, units, valid range, frames, protocol, provenance; with the
+    evaluated ``rows``, each method's per-frame wall seconds as ``methods.<row>.frame_seconds`` (a timing key
+    of :data:`room_pipeline.io.metrics.TIMING_KEYS`: the stage moves it to its timing file)."""
     lo, hi = (float(x) for x in p.valid_range_mm)
+    methods = {name: {**m, "frame_seconds": [float(x) for x in rows[name].seconds]} if name in (rows or {}) else m
+               for name, m in methods.items()}
     return {"methods": round_floats(methods, 6), "units": UNITS, "valid_range_mm": [lo, hi],
             "n_frames": len(samples), "frames": [s.name for s in samples], "input": p.input,
-            "estimators": described, "wall_time_s": round(wall_time_s, 3),
+            "estimators": described,
             "oracle": "rows with oracle: true read the renderer's light model (power, albedo, exposure)",
             "protocol": "frame-averaged metrics on pixels with ground truth in valid_range_mm and a finite positive "
                         "prediction; 'median' rows scaled once per sequence by median(gt) / median(pred)",

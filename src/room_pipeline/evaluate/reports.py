@@ -2,7 +2,8 @@
 
 :func:`read_pose_files` and :func:`read_depth_files` read the per-sequence ``pose.json`` / ``depth.json``
 and the per-patient ``depth_finetune.json`` that exist (a missing file gives a "not run" row, never an
-error); :func:`other_anatomy_records` builds Table III's ``other_anatomy`` rows from the `evaluate_depth`
+error), each with the timings its stage keeps in ``metrics/<stage>.timing.json`` merged back (the tables'
+time columns; :func:`room_pipeline.io.metrics.read_with_timings`); :func:`other_anatomy_records` builds Table III's ``other_anatomy`` rows from the `evaluate_depth`
 records of the patients other than ``depth.cnn.checkpoint_patient`` (or those of
 ``depth.train.eval_patients``): ``cnn_pretrained`` is "before", ``cnn`` (the checkpoint fine-tuned on the
 training patient) is "after", both median-scaled per sequence like the other Table III sets; mean over each
@@ -20,6 +21,7 @@ from typing import Any, Mapping
 from ..config.params import params_from_dict
 from ..errors import ConfigError, InputError
 from ..io.jsondoc import finite, round_floats
+from ..io.metrics import read_with_timings
 from ..paths import PatientPaths
 from . import paper
 from .tables import FINETUNE_COLUMNS, depth_table, finetune_table, mean_records, pose_table, speed_accuracy_csv
@@ -43,12 +45,12 @@ class TablesParams:
         return p
 
 
-def _read(path: Path) -> Any:
+def _read(path: Path, timing_file: Path) -> Any:
+    """An evaluation file with its stage's timings (``timing_file``, when present) merged back."""
     try:
-        with open(path, encoding="utf-8") as fh:
-            return json.load(fh)
+        return read_with_timings(path, timing_file)
     except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: not readable JSON ({exc})") from None
+        raise InputError(f"{path} or {timing_file}: not readable JSON ({exc})") from None
 
 
 def eval_patients(cfg: Mapping[str, Any], patient: str, chosen) -> list[tuple[str, str]]:
@@ -125,7 +127,7 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
         for seq in sequences:
             f = paths.eval(seq).depth
             if f.is_file():
-                doc = _read(f)
+                doc = _read(f, paths.timings(f"evaluate_depth_{seq}"))
                 if "%" in str((doc.get("units") or {}).get("delta1", "")):
                     for rec in (doc.get("methods") or {}).values():
                         for k in ("delta1", "delta2", "delta3"):
@@ -134,7 +136,7 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
                 depth.setdefault(pat, []).append(doc)
         f = paths.depth_finetune      # written by train_depth
         if f.is_file():
-            finetune.append(_read(f))
+            finetune.append(_read(f, paths.timings("train_depth")))
     return depth, finetune
 
 
@@ -143,9 +145,10 @@ def read_pose_files(output_dir: Path, patients: list[str], sequences: list[str])
     docs = []
     for pat in patients:
         for seq in sequences:
-            f = PatientPaths(output_dir, pat).eval(seq).pose
+            paths = PatientPaths(output_dir, pat)
+            f = paths.eval(seq).pose
             if f.is_file():
-                docs.append(_read(f))
+                docs.append(_read(f, paths.timings(f"evaluate_pose_{seq}")))
     return docs
 
 

@@ -11,9 +11,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import __version__
 from ..conventions import metadata_block
-from ..io.atomic import write_json
 from ..io.jsondoc import finite as _finite, read_json, round_floats  # noqa: F401 (the stages' names)
-from ..io.metrics import UNITS, split_timings, timing_path
+from ..io.metrics import split_timings, write_metrics_file
 from ..paths import PatientPaths
 
 
@@ -61,13 +60,18 @@ class StageTimer:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def write_metrics(paths: PatientPaths, stage: str, metrics: dict) -> None:
+def write_metrics(paths: PatientPaths, stage: str, metrics: dict, timings: dict | None = None) -> None:
     """DVC metrics file ``metrics/<stage>.json`` and its timings ``metrics/<stage>.timing.json``.
 
     The keys of :data:`room_pipeline.io.metrics.TIMING_KEYS` (wall/CPU times, throughput, peak memory; at any
-    dict depth) go to the timing file, so a DVC experiment compares accuracy only; JSON numbers only
+    dict depth) go to the timing file, so a DVC experiment compares accuracy only; ``timings`` (those taken out
+    of the stage's evaluation file by :func:`without_timings`) are merged into it; JSON numbers only
     (NaN -> null), each file written atomically (timings first: the metrics file marks a finished stage).
     """
-    accuracy, timings = split_timings(_finite(metrics))
-    write_json(timing_path(paths.metrics(stage)), {**timings, "units": UNITS})
-    write_json(paths.metrics(stage), accuracy)
+    write_metrics_file(paths.metrics(stage), _finite(metrics), _finite(timings or {}))
+
+
+def without_timings(doc: dict) -> tuple[dict, dict]:
+    """``(doc without its timing keys, those timings)`` of an evaluation file (NaN -> null): the file is written
+    without them (same inputs -> same bytes) and the timings go to the stage's timing file (:func:`write_metrics`)."""
+    return split_timings(_finite(doc))

@@ -7,16 +7,18 @@ of the physics baseline) and, for the CNN rows, the checkpoints of the
 
 ``<output_dir>/evaluation/<patient>/<sequence>/depth.json``
     ``{"methods": {name: {"available", "reason", "L1_mm", "AbsRel", "RMSE_mm",
-    "delta1", "delta2", "delta3", "n_frames", "seconds_per_frame", "scaling",
-    ...}}, "units": {...}, "valid_range_mm": [lo, hi], ...}``: one row per
+    "delta1", "delta2", "delta3", "n_frames", "scaling", ...}}, "units": {...},
+    "valid_range_mm": [lo, hi], ...}``: one row per
     method in its own scaling, plus ``<name>_median`` for metric methods
     (``depth.also_median``).  An unavailable method (package, weights or
     predictions missing) has ``available: false``, the reason and null numbers.
 ``<output_dir>/evaluation/<patient>/<sequence>/depth_errors.csv``
     one line per frame: ``frame`` then ``<row>_<metric>`` for every available
-    row (metrics of :mod:`room_pipeline.depth.metrics`) and ``<row>_seconds``.
+    row (metrics of :mod:`room_pipeline.depth.metrics`).
 ``<patient>/metrics/evaluate_depth_<sequence>.json``
-    a short summary (AbsRel, delta1, L1, seconds per frame per row; wall time).
+    a short summary (AbsRel, delta1, L1 per row); its ``.timing.json`` holds every timing (stage wall / CPU
+    time, and under ``methods.<row>`` the seconds per frame, CPU seconds per frame and ``frame_seconds``):
+    the data files above hold none, so the same inputs give the same bytes.
 """
 from __future__ import annotations
 
@@ -31,7 +33,7 @@ from ..depth.estimators import DepthParams, SequenceInfo, evaluate, sequence_sam
 from ..depth.sequence_eval import create_estimators, depth_document, depth_summary, errors_csv, method_rows
 from ..evaluate.allocator import keep_freed_memory
 from ..io.atomic import write_json, write_text
-from .common import StageTimer, _finite, metadata, patient_paths, read_json, write_metrics
+from .common import StageTimer, metadata, patient_paths, read_json, without_timings, write_metrics
 
 
 def outputs(cfg: DictConfig, key: str) -> list:
@@ -63,11 +65,12 @@ def run(cfg: DictConfig, key: str) -> dict:
     methods = method_rows(rows, unavailable, p)
     ev = paths.eval(sequence)
     meta = metadata("evaluate_depth", patient, cfg, ("depth",), sequence=sequence)
-    write_json(ev.depth, _finite(depth_document(methods, samples, p, described, timer.wall_s, meta)))
+    doc, doc_timings = without_timings(depth_document(methods, samples, p, described, meta, rows))
+    write_json(ev.depth, doc)
     write_text(ev.depth_errors, errors_csv(rows, [s.name for s in samples]))
     metrics = {"frames": len(samples), "methods_available": len(rows), "methods_unavailable": len(unavailable),
                "wall_time_s": round(timer.wall_s, 3), "cpu_time_s": round(time.process_time() - cpu0, 3),
                "seconds_per_frame_all_methods": round(timer.wall_s / len(samples), 4),
                "peak_rss_mb": round(timer.peak_rss_mb(), 1), "methods": depth_summary(methods)}
-    write_metrics(paths, f"evaluate_depth_{sequence}", metrics)
+    write_metrics(paths, f"evaluate_depth_{sequence}", metrics, doc_timings)
     return metrics

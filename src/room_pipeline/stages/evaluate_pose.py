@@ -9,7 +9,8 @@ stride, frame cap and image downscale (K scaled to match) keep it fast
 
 Writes ``<output_dir>/evaluation/<patient>/<sequence>/pose.json`` -- per method: available
 / reason, RRA@5, RTA@5, AUC@30 (fractions of frame pairs), registration rate,
-ATE after Sim(3) alignment (mm), wall time -- and
+ATE after Sim(3) alignment (mm); no timing: each method's wall / CPU time goes to the stage's
+``metrics/evaluate_pose_<sequence>.timing.json`` under ``methods`` (:func:`room_pipeline.io.metrics.read_with_timings`) -- and
 ``evaluation/pose_errors.csv`` (one row per frame, one column group per method:
 registered, position / orientation error after alignment, error of the step
 from the previous frame) for ``dvc plots``; DVC metrics in
@@ -30,7 +31,7 @@ from ..evaluate.pose_eval import (PoseEvalParams, errors_csv, evaluate_methods, 
                                   pose_summary)
 from ..evaluate.route_segments import label_frames
 from ..io.atomic import write_json, write_text
-from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
+from .common import StageTimer, metadata, patient_paths, read_json, without_timings, write_metrics
 
 
 def outputs(cfg: DictConfig, key: str) -> list:
@@ -56,10 +57,11 @@ def run(cfg: DictConfig, key: str) -> dict:
                                        p.bifurcation_radius_factor)
         results, curves = evaluate_methods(images, K, poses_gt, p, labels)
     meta = metadata("evaluate_pose", patient, cfg, ("evaluate",), sequence=sequence)
-    write_json(paths.eval(sequence).pose, pose_document(results, info, labels, regions, p, meta))
+    doc, doc_timings = without_timings(pose_document(results, info, labels, regions, p, meta))
+    write_json(paths.eval(sequence).pose, doc)
     write_text(paths.eval(sequence).pose_errors, errors_csv(info["frames"], curves))
     metrics = {"frames": len(images), "wall_time_s": round(timer.wall_s, 3),
                "cpu_time_s": round(time.process_time() - cpu0, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1),
                **pose_summary(results, p)}
-    write_metrics(paths, f"evaluate_pose_{sequence}", metrics)
+    write_metrics(paths, f"evaluate_pose_{sequence}", metrics, doc_timings)
     return metrics

@@ -4,7 +4,8 @@ The training patient is ``depth.cnn.checkpoint_patient``; the experiment (pretra
 and SimCol evaluations; ``other_anatomy`` comes from `evaluate_depth` via `tables`) is described in
 :mod:`room_pipeline.depth.finetune`, which runs it.
 
-Writes ``<output_dir>/evaluation/<patient>/depth_finetune.json`` (read by `tables`) and
+Writes ``<output_dir>/evaluation/<patient>/depth_finetune.json`` (read by `tables`; its timings are in
+``metrics/train_depth.timing.json``) and
 ``<patient>/depth_model/{pretrained.pt, finetuned.pt, training.json,
 training_log.csv, train_mean_depth.npy}`` (the last: mean ground-truth depth of the
 training frames, metres, for Table II's ``train_mean`` baseline) and ``<patient>/metrics/train_depth.json`` =
@@ -29,7 +30,7 @@ from ..depth.finetune import (DEFINITION, finetune, finetune_datasets, finish_tr
 from ..errors import BackendUnavailable
 from ..evaluate.allocator import keep_freed_memory
 from ..io.atomic import write_bytes, write_json, write_text
-from .common import StageTimer, _finite, metadata, patient_paths, round_floats, write_metrics
+from .common import StageTimer, _finite, metadata, patient_paths, round_floats, without_timings, write_metrics
 
 
 def outputs(cfg: DictConfig, patient: str) -> list:
@@ -58,7 +59,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
             for which in ("pretrained", "finetuned"):            # no stale weights next to a failed run
                 checkpoint_path(cfg.output_dir, patient, which).unlink(missing_ok=True)
             write_json(model_dir / "training.json", _finite(training))
-            write_json(paths.depth_finetune, _finite({"datasets": results, "definition": DEFINITION}))
+            write_json(paths.depth_finetune, without_timings({"datasets": results, "definition": DEFINITION})[0])
             write_metrics(paths, "train_depth", {"datasets": results, "training": training})
             return {"available": False, "reason": str(exc)}
         ft = finetune(p, train_samples, datasets, lambda which: checkpoint_path(cfg.output_dir, patient, which),
@@ -75,8 +76,9 @@ def run(cfg: DictConfig, patient: str) -> dict:
     results = ft.results
     doc = {"datasets": {k: round_floats(v, 6) if isinstance(v, dict) else v for k, v in results.items()},
            "training": training}
-    # the tables' input (no timings: same data and seed -> same bytes)
-    write_json(paths.depth_finetune, _finite({"datasets": doc["datasets"], "definition": DEFINITION}))
+    # the tables' input (no timings: same data and seed -> same bytes; they are in train_depth.timing.json under
+    # the same "datasets" keys, room_pipeline.io.metrics.read_with_timings)
+    write_json(paths.depth_finetune, without_timings({"datasets": doc["datasets"], "definition": DEFINITION})[0])
     write_metrics(paths, "train_depth", doc)
     return {"available": True, "pretrain_s": round(ft.times_s["pretrain"], 2),
             "finetune_s": round(ft.times_s["finetune"], 2), "wall_time_s": round(timer.wall_s, 3),
