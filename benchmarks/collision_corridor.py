@@ -33,7 +33,7 @@ from room_pipeline.io.mesh import Mesh, read_obj  # noqa: E402
 from room_pipeline.robot.kinematics import ScopeGeometry  # noqa: E402
 from room_pipeline.robot.sim_params import SimParams  # noqa: E402
 from room_pipeline.robot.simulation import simulate  # noqa: E402
-from room_pipeline.stages.simulate import open_entrance  # noqa: E402
+from room_pipeline.robot.sequence_sim import open_entrance  # noqa: E402
 
 PYBULLET_ONE_SHAPE_OK = 131_708     # ../shared/DESIGN.md: passed; 200,914 failed
 #: --wall: the simulate stage's wall (collision_model.obj) or the finer render mesh (lung_model.obj), a larger

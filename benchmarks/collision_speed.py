@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from collision_corridor import angle_deg, inputs  # noqa: E402
 from room_pipeline.io.mesh import read_obj  # noqa: E402
-from room_pipeline.stages.simulate import open_entrance  # noqa: E402
+from room_pipeline.robot.sequence_sim import open_entrance  # noqa: E402
 from room_pipeline.anatomy.collision import collision_surface  # noqa: E402
 from room_pipeline.anatomy.decimate import two_sided_error  # noqa: E402
 from room_pipeline.io.mesh import Mesh  # noqa: E402

@@ -64,7 +64,7 @@ def ssim(a: np.ndarray, b: np.ndarray) -> float:
 def render_params(overrides: dict | None = None):
     """The render stage's parameters from the default conf/render (+ overrides), lens distortion off."""
     from room_pipeline.config.compose import compose, section
-    from room_pipeline.stages.render import RenderParams
+    from room_pipeline.render.params import RenderParams
 
     d = dict(section(compose(), "render"))
     d["distortion"] = [0.0] * 5
@@ -78,7 +78,8 @@ def build_scene(pdir: Path, sequence: str, rp, res: int):
     from room_pipeline.io.mesh import read_obj
     from room_pipeline.render.scene import Scene
     from room_pipeline.render.texture import airway_coordinates
-    from room_pipeline.stages.render import camera_of, face_labels, load_poses, scene_parts
+    from room_pipeline.render.params import camera_of, scene_parts
+    from room_pipeline.render.sequence import face_labels, load_poses
 
     mesh = read_obj(pdir / "anatomy" / "lung_model.obj")
     graph = CentrelineGraph.from_dict(json.loads((pdir / "anatomy" / "centreline_graph.json").read_text()))
@@ -385,7 +386,7 @@ def film_ev(scene, i: int) -> float:
 
 
 def exposure_params_default():
-    from room_pipeline.stages.render import exposure_params
+    from room_pipeline.render.params import exposure_params
 
     return exposure_params(render_params())
 

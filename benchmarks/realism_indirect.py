@@ -338,7 +338,7 @@ def speed(scene, views, names, args) -> None:
     from room_pipeline.render.exposure import raw_exposures
     from room_pipeline.render.indirect import IndirectConfig
     from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
-    from room_pipeline.stages.render import exposure_params
+    from room_pipeline.render.params import exposure_params
 
     rows = []
     grid = [(0, 64)] + [(8, int(k)) for k in args.grid.split(",")]

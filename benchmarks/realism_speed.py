@@ -48,7 +48,8 @@ def main() -> None:
     from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
     from room_pipeline.render.scene import Scene
     from room_pipeline.render.texture import airway_coordinates
-    from room_pipeline.stages.render import RenderParams, exposure_params, face_labels, scene_parts
+    from room_pipeline.render.params import RenderParams, exposure_params, scene_parts
+    from room_pipeline.render.sequence import face_labels
 
     pat = Path(a.inputs) / "patient_000"
     p = RenderParams.from_dict(compose([]).render)

@@ -113,7 +113,7 @@ def pipeline_sequence(quick: bool) -> dict:
     import types
 
     from room_pipeline.io.mesh import read_obj
-    from room_pipeline.stages.simulate import open_entrance
+    from room_pipeline.robot.sequence_sim import open_entrance
 
     root = ROOT / "data" / "output" / "patient_000"
     meta = root / "sequence_000" / "metadata" / "trajectory.json"
@@ -216,7 +216,7 @@ def _load_sequence(root: Path):
     import types
 
     from room_pipeline.io.mesh import read_obj
-    from room_pipeline.stages.simulate import open_entrance
+    from room_pipeline.robot.sequence_sim import open_entrance
 
     fr = json.loads((root / "sequence_000" / "metadata" / "trajectory.json").read_text())["frames"]
     traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),

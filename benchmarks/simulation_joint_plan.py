@@ -36,7 +36,7 @@ from room_pipeline.io.volume import read_nifti_sdf  # noqa: E402
 from room_pipeline.planning.joint_plan import JointPlanParams, plan_joints  # noqa: E402
 from room_pipeline.planning.trajectory import volume_sdf_fn  # noqa: E402
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY as G  # noqa: E402
-from room_pipeline.robot.pybullet_sim import Route  # noqa: E402
+from room_pipeline.robot.route import Route  # noqa: E402
 
 REFERENCE = {"max_iterations": 2000, "body_points": 21}
 KNOBS = [("max_iterations", 50), ("max_iterations", 100), ("body_points", 6)]

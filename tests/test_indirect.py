@@ -167,14 +167,14 @@ def test_shadowed_points_get_no_direct_light():
 @pytest.mark.parametrize("bad", [{"indirect_bounces": -1}, {"indirect_rays_per_point": 0}])
 def test_bad_indirect_config_is_refused(bad):
     from room_pipeline.errors import ConfigError
-    from room_pipeline.stages.render import RenderParams
+    from room_pipeline.render.params import RenderParams
 
     with pytest.raises(ConfigError, match="indirect"):
         RenderParams.from_dict(bad)
 
 
 def test_render_config_reaches_the_ray_caster_and_the_meter():
-    from room_pipeline.stages.render import RenderParams, indirect_config, raycast_config
+    from room_pipeline.render.params import RenderParams, indirect_config, raycast_config
 
     p = RenderParams.from_dict({"indirect_bounces": 3, "indirect_rays_per_point": 9, "indirect_seed": 4})
     assert indirect_config(p) == IndirectConfig(bounces=3, rays_per_point=9, seed=4)

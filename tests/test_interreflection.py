@@ -56,7 +56,7 @@ def test_geometric_series_and_window():
 @pytest.mark.parametrize("bad", [{"interreflection": 1.0}, {"interreflection": -0.1},
                                  {"interreflection_window_mm": 0.0}])
 def test_bad_interreflection_config_is_refused(bad):
-    from room_pipeline.stages.render import RenderParams
+    from room_pipeline.render.params import RenderParams
 
     with pytest.raises(ConfigError, match="interreflection"):
         RenderParams.from_dict(bad)

@@ -19,7 +19,7 @@ from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY
 from room_pipeline.robot.route import Route
 from room_pipeline.robot.sim_params import SimParams
 from room_pipeline.robot.simulation import simulate
-from room_pipeline.stages.simulate import _read_inputs
+from room_pipeline.robot.sequence_sim import read_inputs
 
 from .test_simulation import lumen_mesh, straight_trajectory
 
@@ -114,14 +114,14 @@ def test_trajectory_json_carries_the_plan_and_simulate_reads_it(planned, tmp_pat
     (tmp_path / "trajectory.json").write_text(json.dumps(doc))
     graph = {"branches": [{"id": 0, "parent": -1, "mean_radius": 0.008}]}
     (tmp_path / "graph.json").write_text(json.dumps(graph))
-    traj, _ = _read_inputs(tmp_path / "trajectory.json", tmp_path / "graph.json", "p/s")
+    traj, _ = read_inputs(tmp_path / "trajectory.json", tmp_path / "graph.json", "p/s")
     np.testing.assert_allclose(traj.joints, tr.joints, atol=1e-12)
     np.testing.assert_allclose(traj.path_poses, tr.path_poses, atol=1e-12)
     doc["frames"][3]["q"] = [0.0, 1.0]
     (tmp_path / "trajectory.json").write_text(json.dumps(doc))
     from room_pipeline.errors import InputError
     with pytest.raises(InputError, match="cannot read .*trajectory.json"):
-        _read_inputs(tmp_path / "trajectory.json", tmp_path / "graph.json", "p/s")
+        read_inputs(tmp_path / "trajectory.json", tmp_path / "graph.json", "p/s")
 
 
 def test_bad_joint_plan_config_is_one_config_error():

@@ -45,7 +45,7 @@ def textured_scene(mesh, poses, graph=None, **kw) -> Scene:
 def default_indirect():
     """The render stage's default inter-reflection (conf/render: render.indirect_bounces, rays per point, seed)."""
     from room_pipeline.config.compose import compose, section
-    from room_pipeline.stages.render import RenderParams, indirect_config
+    from room_pipeline.render.params import RenderParams, indirect_config
 
     return indirect_config(RenderParams.from_dict(dict(section(compose(), "render"))))
 

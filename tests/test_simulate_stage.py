@@ -5,7 +5,7 @@ import numpy as np
 
 from room_pipeline.io.mesh import Mesh
 from room_pipeline.io.tum import tum_text as tum
-from room_pipeline.stages.simulate import open_entrance
+from room_pipeline.robot.sequence_sim import open_entrance
 
 
 def _tube(radius=5e-3, z0=0.0, z1=0.1, n=24, m=20):

@@ -13,7 +13,7 @@ from room_pipeline.render.camera import CameraIntrinsics
 from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
 from room_pipeline.render.scene import Film, TipLight, TissueMaterial
 from room_pipeline.render.texture import MucosaTexture, mucosa_albedo
-from room_pipeline.stages.render import RenderParams, texture_params
+from room_pipeline.render.params import RenderParams, texture_params
 
 from .test_raycast import look, scene, tube
 

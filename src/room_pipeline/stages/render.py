@@ -21,11 +21,6 @@ from ..render.params import RenderParams
 from ..render.sequence import execution_params, load_poses, render_sequence, select_frames
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 
-# re-exported for benchmarks and tests that other engineers edit this round (their new home: render/)
-from ..render.params import (camera_of, exposure_params, indirect_config, raycast_config,  # noqa: E402,F401
-                             scene_parts, texture_params)
-from ..render.sequence import face_labels  # noqa: E402,F401
-
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)

@@ -26,9 +26,6 @@ from ..robot.simulation import check_inputs, robot_config, simulate
 from ..robot.sequence_sim import data_report, open_entrance, read_inputs, sim_metrics
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 
-_read_inputs = read_inputs       # the names tests and benchmarks edited elsewhere this round import from here
-__all__ = ["open_entrance", "_read_inputs", "outputs", "run"]
-
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
