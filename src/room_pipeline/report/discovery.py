@@ -1,20 +1,20 @@
-"""Which patients and sequences a dataset folder holds (the report's view of the layout).
+"""Which patients and rendered sequences a dataset folder holds (the report's view of the layout).
 
-A sequence here is any folder with ``metadata/`` (planned or simulated only, too: the summary counts their
-frames); the rendered frames themselves are read through :class:`room_pipeline.dataset.reader.SequenceReader`
-(:mod:`.sections`), whose :func:`~room_pipeline.dataset.reader.is_sequence` needs ``metadata/render.json``.
+Through the dataset reader: a sequence is what :func:`room_pipeline.dataset.reader.find_sequences` finds, a
+*rendered* one (``metadata/render.json``, :meth:`room_pipeline.catalog.SequencePaths.is_rendered`); a folder
+that is planned or simulated only is not listed (the report shows what a user of the dataset can read).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
-from ..catalog import METADATA
+from ..dataset.reader import find_sequences
 from .options import MARKERS
 
 
 def find_patients(output_dir: Path) -> list[Path]:
     """Patient folders under ``output_dir`` (sorted): those with metrics/, anatomy/, input/,
-    ground_truth/ or a sequence folder (a sub-folder holding ``metadata/``)."""
+    ground_truth/ or a rendered sequence."""
     out = []
     for d in sorted(p for p in Path(output_dir).iterdir() if p.is_dir() and not p.name.startswith(".")):
         if any((d / m).is_dir() for m in MARKERS) or find_sequence_dirs(d):
@@ -23,6 +23,7 @@ def find_patients(output_dir: Path) -> list[Path]:
 
 
 def find_sequence_dirs(patient: Path) -> list[Path]:
-    """Sequence folders of a patient (sorted): sub-folders holding ``metadata/``."""
-    return sorted(p for p in Path(patient).iterdir()
-                  if p.is_dir() and not p.name.startswith(".") and (p / METADATA).is_dir())
+    """The rendered sequence folders of a patient folder (sorted; :func:`~room_pipeline.dataset.reader.find_sequences`
+    keeps only its direct sub-folders here)."""
+    patient = Path(patient)
+    return [s for s in find_sequences(patient) if s.parent == patient]

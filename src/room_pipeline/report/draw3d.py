@@ -197,4 +197,4 @@ def section_view3d(opts: ReportOptions, patients: list[Path]) -> str:
             out.append(_legend(sc))
             out.append("<p class=\"note\">Anterior view (patient's right on the image left, superior up). "
                        + " ".join(esc(n[0].upper() + n[1:] + ".") for n in notes) + "</p>")
-    return "\n".join(out) if out else na("no sequence folders with metadata")
+    return "\n".join(out) if out else na("no rendered sequence")

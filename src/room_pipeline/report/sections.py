@@ -17,7 +17,8 @@ from .options import ReportOptions, THUMB_MODALITIES
 
 
 def _sequence_row(seq: Path) -> list[str]:
-    from ..dataset.reader import SequenceReader, is_sequence
+    """A rendered sequence's summary row (its planned and simulated frame counts too)."""
+    from ..dataset.reader import SequenceReader
 
     traj, why_t = read_json(SequencePaths(seq).trajectory)
     sim, why_s = read_json(SequencePaths(seq).simulation)
@@ -29,21 +30,19 @@ def _sequence_row(seq: Path) -> list[str]:
     if isinstance(tgt, dict) and "stop_distance" in tgt:  # how far from the target the scope stopped, and why
         planned += f"; stopped {1e3 * float(tgt['stop_distance']):.1f} mm from the target ({tgt.get('stop_reason', '?')})"
     simulated = f"{len(sim['frames'])}" if has(sim) else f"- ({why_s or 'no frames'})"
-    if is_sequence(seq):
-        try:
-            r = SequenceReader(seq)
-        except InputError as exc:
-            return [seq.parent.name, seq.name, planned, simulated, f"- ({exc})", "-", "-", "-"]
-        i = r.intrinsics
-        fov = math.degrees(2 * math.atan(i["width"] / (2 * i["fx"])))
-        backend = (r.render_meta.get("renderer") or {}).get("backend", "?")
-        poses = r.render_meta.get("poses", "?")
-        rendered = f"{len(r)} ({backend}, {poses} poses)"
-        span = float(r.timestamps[-1] - r.timestamps[0]) if len(r) > 1 else 0.0
-        return [seq.parent.name, seq.name, planned, simulated, rendered,
-                f"{i['width']}x{i['height']}, fx {i['fx']:.1f} px, fov_x {fov:.1f} deg",
-                ", ".join(r.modalities), f"{span:.2f}"]
-    return [seq.parent.name, seq.name, planned, simulated, "- (not rendered: no metadata/render.json)", "-", "-", "-"]
+    try:
+        r = SequenceReader(seq)
+    except InputError as exc:
+        return [seq.parent.name, seq.name, planned, simulated, f"- ({exc})", "-", "-", "-"]
+    i = r.intrinsics
+    fov = math.degrees(2 * math.atan(i["width"] / (2 * i["fx"])))
+    backend = (r.render_meta.get("renderer") or {}).get("backend", "?")
+    poses = r.render_meta.get("poses", "?")
+    rendered = f"{len(r)} ({backend}, {poses} poses)"
+    span = float(r.timestamps[-1] - r.timestamps[0]) if len(r) > 1 else 0.0
+    return [seq.parent.name, seq.name, planned, simulated, rendered,
+            f"{i['width']}x{i['height']}, fx {i['fx']:.1f} px, fov_x {fov:.1f} deg",
+            ", ".join(r.modalities), f"{span:.2f}"]
 
 
 def section_summary(opts: ReportOptions, patients: list[Path]) -> str:
@@ -51,19 +50,17 @@ def section_summary(opts: ReportOptions, patients: list[Path]) -> str:
 
     if not patients:
         return na(f"no patient folders in {show_path(opts.output_dir, opts.base)}")
-    from ..dataset.reader import is_sequence
-
-    rows, counts, n_rendered = [], [], 0
+    rows, counts = [], []
     for p in patients:
         seqs = find_sequence_dirs(p)
         counts.append(len(seqs))
-        n_rendered += sum(1 for s in seqs if is_sequence(s))
         rows += [_sequence_row(s) for s in seqs]
-    out = [f"<p>{len(patients)} patient(s), {sum(counts)} sequence(s) with metadata, {n_rendered} rendered, "
+    out = [f"<p>{len(patients)} patient(s), {sum(counts)} rendered sequence(s), "
            f"in <code>{esc(show_path(opts.output_dir, opts.base))}</code>.</p>"]
     for p, n in zip(patients, counts):
         if n == 0:
-            out.append(f"<p>{esc(p.name)}: no sequence folders (no <code>sequence_*/metadata</code>).</p>")
+            out.append(f"<p>{esc(p.name)}: no rendered sequence (no <code>sequence_*/metadata/render.json</code>)."
+                       "</p>")
     if rows:
         out.append(html_table(["patient", "sequence", "planned frames", "simulated frames", "rendered frames",
                            "camera", "modalities", "rendered span (s)"], rows))
@@ -162,17 +159,12 @@ def sequence_thumbnails(seq: Path, max_frames: int, px: int) -> str:
 
 
 def section_thumbnails(opts: ReportOptions, patients: list[Path]) -> str:
-    from ..dataset.reader import is_sequence
-
     out = []
     for p in patients:
         for s in find_sequence_dirs(p):
             out.append(f"<h3>{esc(p.name)} / {esc(s.name)}</h3>")
-            if not is_sequence(s):
-                out.append(na(f"{s.name} is not rendered (no metadata/render.json)"))
-                continue
             out.append(sequence_thumbnails(s, opts.max_frames, opts.thumb_px))
-    return "\n".join(out) if out else na("no sequence folders")
+    return "\n".join(out) if out else na("no rendered sequence")
 
 
 # =========================================================================== section: real vs synthetic
