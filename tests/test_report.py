@@ -158,10 +158,19 @@ def test_every_image_is_a_decodable_data_uri_of_its_stated_size(page):
 
 def test_summary_counts_and_conventions(page):
     s = section(page, "summary")
-    assert "1 patient(s), 2 sequence(s) with metadata, 1 rendered" in s
+    assert "1 patient(s), 1 rendered sequence(s)" in s
     assert f"{N_FRAMES} (open3d_raycast, simulated poses)" in s and f"{SIZE}x{SIZE}" in s
-    assert "not rendered: no metadata/render.json" in s
+    assert PLANNED_SEQ not in s                  # planned only: not a sequence of the dataset (dataset reader)
     assert "RAS+" in s and "OpenCV: x right, y down, z forward" in s and "4x4 camera-to-world" in s
+
+
+def test_discovery_lists_rendered_sequences_only(dataset):
+    """Through the dataset reader: the planned-only sequence (trajectory.json, no render.json) is not listed."""
+    from room_pipeline.report.discovery import find_patients, find_sequence_dirs
+
+    assert (dataset / PATIENT / PLANNED_SEQ / "metadata" / "trajectory.json").is_file()
+    assert find_patients(dataset) == [dataset / PATIENT]
+    assert find_sequence_dirs(dataset / PATIENT) == [dataset / PATIENT / RENDERED_SEQ]
 
 
 def test_thumbnails_one_column_per_modality_and_ranges(page):
@@ -173,19 +182,17 @@ def test_thumbnails_one_column_per_modality_and_ranges(page):
     lo, hi = map(float, re.search(r"([\d.]+) &larr; &rarr; ([\d.]+) mm", s).groups())
     assert 0 < lo < hi < 100                                          # mm inside a 95 mm tube
     assert "2 branch label(s)" in s
-    assert f"not available: {PLANNED_SEQ} is not rendered" in s
+    assert PLANNED_SEQ not in s
     thumbs = [a for a in parse(s).imgs if re.fullmatch(r"(rgb|depth|flow) frame_\d{4}", a["alt"])]
     assert len(thumbs) == 3 * 3 and all(int(a["width"]) == SIZE for a in thumbs)
 
 
 def test_view3d_draws_what_exists_and_says_what_not(page):
     s = section(page, "view3d")
-    assert s.count("drawn by pyvista (VTK, off-screen)") == 4          # two views of two sequences
+    assert s.count("drawn by pyvista (VTK, off-screen)") == 2          # two views of the rendered sequence
     assert "Scope (tube, outer diameter 5.0 mm) at simulation frames" in s
-    assert "Simulated tip path not drawn: no simulation.json" in s     # the planned-only sequence
-    assert "Scope not drawn: it needs trajectory.json and simulation.json" in s
-    mism = [float(x) for x in re.search(r"simulated tip: ([\d., ]+) mm", s).group(1).split(",")]
-    assert len(mism) == 3 and max(mism) < 2.0                          # model vs PyBullet tip, free tube
+    assert PLANNED_SEQ not in s                                        # the planned-only sequence is not listed
+    assert "as simulated (the backbone simulation.json records)" in s
 
 
 def test_metrics_table_lists_every_stage_file(page, dataset):
@@ -245,7 +252,7 @@ def test_markdown_escapes_html():
 def test_matplotlib_fallback_says_so(opts):
     s = draw3d.section_view3d(ReportOptions(output_dir=opts.output_dir, view_size=(200, 160), use_pyvista=False),
                           [opts.output_dir / PATIENT])
-    assert s.count("matplotlib 3-D fallback (pyvista off-screen rendering unavailable: disabled") == 4
+    assert s.count("matplotlib 3-D fallback (pyvista off-screen rendering unavailable: disabled") == 2   # one sequence
     for a in parse(s).imgs:
         assert decode(a["src"]).shape[:2] == (160, 200)
 
@@ -309,17 +316,26 @@ def test_colour_maps():
     assert colour.thumbnail(np.zeros((300, 600), np.uint16), 150, nearest=True).shape == (75, 150)
 
 
-def test_scope_backbone_matches_the_simulated_tip(dataset):
+def test_scope_backbone_is_the_recorded_one(dataset):
+    """The report draws simulation.json's backbone (no robot model): its last point is the simulated tip."""
+    import sys
+
     meta = dataset / PATIENT / RENDERED_SEQ / "metadata"
-    load = lambda n: json.loads((meta / n).read_text())  # noqa: E731
-    lines, tips, picks, mism = scene.scope_backbones(load("trajectory.json"), load("simulation.json"),
-                                                  load("robot_config.json"), 2)
+    sim = json.loads((meta / "simulation.json").read_text())
+    lines, tips, picks = scene.scope_backbones(sim, 2)
     assert picks == [4, 9] and len(lines) == 2 and tips.shape == (2, 3)
-    for line, tip, m in zip(lines, tips, mism):
-        assert np.isclose(np.linalg.norm(line[-1] - tip), m) and m < 2 * MM
+    for line, tip, k in zip(lines, tips, picks):
+        assert np.array_equal(line, np.asarray(sim["frames"][k]["backbone"]))
+        assert np.allclose(tip, np.asarray(sim["frames"][k]["tip_pose"])[:3, 3], atol=1e-6)   # rounded to 1 um
         assert np.all(np.linalg.norm(line[:, :2], axis=1) < RADIUS)         # inside the tube
-    with pytest.raises(InputError, match="passive"):
-        scene.scope_backbones(load("trajectory.json"), load("simulation.json"), {"insertion_model": "passive"}, 2)
+        assert len(line) >= 11                                               # 10 bending links + the tip
+    old = {**sim, "frames": [{k: v for k, v in f.items() if k != "backbone"} for f in sim["frames"]]}
+    with pytest.raises(InputError, match="rerun"):
+        scene.scope_backbones(old, 2)
+    # the report package imports no robot model (nor PyBullet)
+    code = "import sys, room_pipeline.report; print(sorted(m for m in sys.modules if m.startswith(('room_pipeline.robot', 'pybullet'))))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", check=True)
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 # --------------------------------------------------------------------------- a real browser

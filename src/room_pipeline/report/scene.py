@@ -1,16 +1,12 @@
 """The 3-D scene of one sequence: what is drawn (mesh, planned / simulated paths, cameras, scope backbones).
 
-Why the scope's shape is reconstructed here: ``simulation.json`` records the tip pose and the joints per
-frame, not the backbone, so :func:`scope_backbones` rebuilds it from the simulator's ``kinematic``
-insertion model (route + ``q3``, then :func:`room_pipeline.robot.kinematics.fk`) and states, per drawn
-frame, how far its tip lies from the simulated tip.  Once the simulation saves its backbone points (the
-PyBullet body's vertices), this module should draw those instead.
+The scope is drawn as the simulation recorded it: ``simulation.json`` holds per frame the scope's backbone
+(``frames[].backbone``, world m, entrance to tip: the shaft on the route, then the simulated body's link
+vertices; :class:`room_pipeline.robot.simulation.SimResult`), so the report needs no robot model.
 """
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 from pathlib import Path
 from typing import Mapping
 
@@ -37,54 +33,23 @@ class Scene3D:
     scope_radius: float = 0.0025
 
 
-def scope_backbones(trajectory: Mapping, simulation: Mapping, robot: Mapping, n_frames: int,
-                    step_m: float = 1e-3) -> tuple[list[np.ndarray], np.ndarray, list[int], list[float]]:
-    """Backbone polylines of the simulated scope at ``n_frames`` evenly spaced simulation frames.
-
-    Reconstruction (the simulator's ``kinematic`` insertion model): the bending-segment base is
-    the planned route's frame at arclength ``q3``, rolled by ``q2``; the shaft is the route from
-    its start up to ``q3`` (sampled every ``step_m``); the bending segment is the constant-curvature
-    arc of :func:`room_pipeline.robot.kinematics.fk` for ``q1``.  Joints are the recorded ``q_act``.
-
-    Returns (polylines (P_i, 3) metres, simulated tip positions (S, 3), the frame indices, and per
-    frame the distance (m) between the reconstructed tip and the simulated ``tip_pose``).
-    Raises InputError when the inputs lack what the reconstruction needs.
-    """
-    from ..robot.kinematics import ScopeGeometry, fk
-    from ..robot.route import Route
-
-    if robot.get("insertion_model", "kinematic") != "kinematic":
-        raise InputError(f"insertion model {robot.get('insertion_model')!r}: the shaft shape is not recorded "
-                         "(only the kinematic model's shaft follows the planned route)")
+def scope_backbones(simulation: Mapping, n_frames: int) -> tuple[list[np.ndarray], np.ndarray, list[int]]:
+    """The recorded backbone polylines (P_i, 3), metres, of the simulated scope at ``n_frames`` evenly spaced
+    simulation frames (the last included), their tips (S, 3) and the frame indices.
+    Raises InputError when ``simulation.json`` records no backbone (made before it did: rerun simulate)."""
     try:
-        planned = pose_track_from_doc(trajectory, POSE_KEY[TRAJECTORY_JSON], TRAJECTORY_JSON)
-        if planned.arclength is None:
-            raise KeyError("arclength")
-        k = robot.get("kinematics") or {}
-        geometry = ScopeGeometry(l=float(k.get("bending_length", ScopeGeometry.l)),
-                                 gamma=float(k.get("gamma", ScopeGeometry.gamma)),
-                                 q1_max=float(k.get("q1_max", ScopeGeometry.q1_max)))
         sf = simulation["frames"]
         picks = pick_frames(len(sf), n_frames + 1)[1:] if n_frames > 0 and len(sf) > 1 else []
         picks = picks[-n_frames:] if n_frames else []
-        qs = [np.asarray(sf[i]["q_act"], dtype=np.float64) for i in picks]
-        tips = pose_track_from_doc(simulation, POSE_KEY[SIMULATION_JSON], SIMULATION_JSON).positions[picks]
-    except (KeyError, TypeError, ValueError, IndexError, InputError) as exc:
-        raise InputError(f"trajectory/simulation/robot_config lack what the scope drawing needs ({exc})") from None
-    route = Route.from_trajectory(planned)
-    lines, mismatch = [], []
-    for q, tip in zip(qs, tips):
-        s0 = float(route.s[0])
-        shaft = [route.frame(s)[:3, 3] for s in np.arange(s0, q[2], step_m)] if q[2] > s0 else []
-        base = route.frame(float(q[2]))
-        c2, s2 = math.cos(q[1]), math.sin(q[1])
-        base[:3, :3] = base[:3, :3] @ np.array([[c2, -s2, 0.0], [s2, c2, 0.0], [0.0, 0.0, 1.0]])
-        ss = np.linspace(0.0, geometry.l, 25)
-        arc = fk(np.array([q[0], 0.0, 0.0]), ss, geometry=geometry)
-        bend = (base @ arc)[:, :3, 3]
-        lines.append(np.vstack([np.reshape(shaft, (-1, 3)), bend]))
-        mismatch.append(float(np.linalg.norm(bend[-1] - tip)))
-    return lines, tips, picks, mismatch
+        lines = [np.asarray(sf[i]["backbone"], dtype=np.float64).reshape(-1, 3) for i in picks]
+    except KeyError:
+        raise InputError("simulation.json records no scope backbone (frames[].backbone; made by an older "
+                         "simulate stage: rerun it)") from None
+    except (TypeError, ValueError, IndexError) as exc:
+        raise InputError(f"simulation.json: unreadable scope backbone ({exc})") from None
+    if any(len(b) < 2 for b in lines):
+        raise InputError("simulation.json: a recorded scope backbone has fewer than 2 points")
+    return lines, np.array([b[-1] for b in lines]).reshape(-1, 3), list(picks)
 
 
 def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[str]]:
@@ -116,23 +81,17 @@ def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[st
             sc.rendered = pose_track_from_doc(rend, POSE_KEY[RENDER_JSON], sp.render_json).positions
         except (KeyError, TypeError, ValueError, IndexError, InputError):
             notes.append("rendered cameras not drawn: render.json frames lack 4x4 poses")
-    if scope_frames and traj is not None and sim is not None:
-        robot, why_r = read_json(sp.robot_config)
-        if robot is None:
-            notes.append(f"scope not drawn: {why_r}")
-        else:
-            try:
-                lines, tips, picks, mism = scope_backbones(traj, sim, robot, scope_frames)
-                sc.scopes, sc.tips = lines, tips
-                diam = (robot.get("scope") or {}).get("outer_diameter")
-                if isinstance(diam, (int, float)) and diam > 0:
-                    sc.scope_radius = 0.5 * float(diam)
-                notes.append("scope (tube, outer diameter %.1f mm) at simulation frames %s; reconstructed "
-                             "model tip vs simulated tip: %s mm" % (2e3 * sc.scope_radius,
-                                                                   ", ".join(map(str, picks)),
-                                                                   ", ".join(f"{1e3 * m:.2f}" for m in mism)))
-            except InputError as exc:
-                notes.append(f"scope not drawn: {exc}")
+    if scope_frames and sim is not None:
+        try:
+            sc.scopes, sc.tips, picks = scope_backbones(sim, scope_frames)
+            robot, _ = read_json(sp.robot_config)
+            diam = ((robot or {}).get("scope") or {}).get("outer_diameter")
+            if isinstance(diam, (int, float)) and diam > 0:
+                sc.scope_radius = 0.5 * float(diam)
+            notes.append("scope (tube, outer diameter %.1f mm) at simulation frames %s, as simulated (the backbone "
+                         "simulation.json records)" % (2e3 * sc.scope_radius, ", ".join(map(str, picks))))
+        except InputError as exc:
+            notes.append(f"scope not drawn: {exc}")
     elif scope_frames:
-        notes.append("scope not drawn: it needs trajectory.json and simulation.json")
+        notes.append("scope not drawn: it needs simulation.json")
     return sc, notes

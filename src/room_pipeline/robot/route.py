@@ -39,6 +39,11 @@ class Route:
         P = trajectory.poses if P is None else P
         return cls(P[:, :3, 3], trajectory.arclength, P[:, :3, :3])
 
+    def polyline(self, s_end: float, step: float) -> np.ndarray:
+        """(P, 3) positions (m) from the route's start up to (not including) arclength ``s_end``, every ``step`` m."""
+        s = np.arange(float(self.s[0]), s_end, step)
+        return np.array([self.frame(float(x))[:3, 3] for x in s]).reshape(-1, 3)
+
     def frame(self, s: float) -> np.ndarray:
         S = self.s
         if s <= S[0]:

@@ -74,6 +74,9 @@ from .sim_params import SimParams
 from .wall import crop_faces, route_corridor
 
 
+BACKBONE_SHAFT_STEP_M = 0.01    #: m between the backbone points recorded on the shaft behind the body (few: small file)
+
+
 def robot_config(params: SimParams, geometry: ScopeGeometry) -> dict:
     """Model parameters for ``sequence_YYY/metadata/robot_config.json`` (SI units)."""
     dt = params.time_step_s
@@ -128,6 +131,8 @@ class SimResult:
         tracking_error_m: (T,) |actual - planned| camera position, m.
         tracking_error_rad: (T,) angle between the actual and planned view directions, rad.
         report: summary (errors, wall time, steps, realtime factor, mesh crops, delay).
+        backbones: per frame the backbone (P_k, 3), world m, entrance to tip: the shaft on the route behind the body
+            every :data:`BACKBONE_SHAFT_STEP_M`, then the body's link vertices as PyBullet has them, last the tip.
     """
 
     timestamps: np.ndarray
@@ -139,11 +144,14 @@ class SimResult:
     tracking_error_m: np.ndarray
     tracking_error_rad: np.ndarray
     report: dict
+    backbones: list | None = None
 
     def to_dict(self) -> dict:
-        return {"description": "simulated scope: per-frame actual tip camera pose, joints, contact and tracking error",
+        return {"description": "simulated scope: per-frame actual tip camera pose, joints, contact, tracking, backbone",
                 "units": {"timestamp": "s", "pose": "4x4 camera-to-world, world RAS+ m", "q": "[q1 m, q2 rad, q3 m]",
-                          "contact_force": "N", "penetration": "m", "tracking_error": "m / rad"},
+                          "contact_force": "N", "penetration": "m", "tracking_error": "m / rad",
+                          "backbone": f"(P, 3) world RAS+ m to 1 um, entrance to tip: shaft on the route every "
+                                      f"{BACKBONE_SHAFT_STEP_M * 1e3:g} mm, then the body's link vertices to the tip"},
                 "report": self.report,
                 "frames": [{"index": i, "timestamp": float(self.timestamps[i]),
                             "tip_pose": np.round(self.tip_poses[i], 12).tolist(),
@@ -151,7 +159,8 @@ class SimResult:
                             "contact_force_n": float(self.contact_force_n[i]),
                             "penetration_m": float(self.penetration_m[i]),
                             "tracking_error_m": float(self.tracking_error_m[i]),
-                            "tracking_error_rad": float(self.tracking_error_rad[i])}
+                            "tracking_error_rad": float(self.tracking_error_rad[i]),
+                            **({"backbone": np.round(self.backbones[i], 6).tolist()} if self.backbones else {})}
                            for i in range(len(self.timestamps))]}
 
 
@@ -379,6 +388,7 @@ def _drive(sim: ScopeSim, route: Route, trajectory, mesh: Mesh | None, params: S
     q_act = np.zeros((T, 3))
     force = np.zeros(T)
     pen = np.zeros(T)
+    backbones: list = [None] * T
 
     def record(k: int, t: float) -> None:
         nonlocal dev_max
@@ -386,8 +396,10 @@ def _drive(sim: ScopeSim, route: Route, trajectory, mesh: Mesh | None, params: S
         q_cmd[k] = signal(t)
         q_act[k] = act(t)
         force[k], pen[k] = sim.contacts()
+        body = sim.sample_points()
+        backbones[k] = np.vstack([route.polyline(float(q_act[k, 2]) - Lp, BACKBONE_SHAFT_STEP_M), body])
         if corridor_tree is not None:
-            dev_max = max(dev_max, float(corridor_tree.query(sim.sample_points())[0].max()))
+            dev_max = max(dev_max, float(corridor_tree.query(body)[0].max()))
 
     record(0, 0.0)
     t_now = 0.0
@@ -478,7 +490,8 @@ def _drive(sim: ScopeSim, route: Route, trajectory, mesh: Mesh | None, params: S
                                               if use_corridor else {})},
     }
     return SimResult(timestamps=ts.copy(), tip_poses=tip, q_cmd=q_cmd, q_act=q_act, contact_force_n=force,
-                     penetration_m=pen, tracking_error_m=err_m, tracking_error_rad=err_rad, report=report)
+                     penetration_m=pen, tracking_error_m=err_m, tracking_error_rad=err_rad, report=report,
+                     backbones=backbones)
 
 
 def _advance(B: np.ndarray, ds: float) -> np.ndarray:
