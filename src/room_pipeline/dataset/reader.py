@@ -83,7 +83,7 @@ def _read_json(path: Path) -> Any:
 
 def is_sequence(path: str | os.PathLike) -> bool:
     """True when ``path`` is a rendered sequence folder (it holds ``metadata/render.json``)."""
-    return (Path(path) / RENDER_JSON).is_file()
+    return catalog.SequencePaths(Path(path)).is_rendered()
 
 
 def find_sequences(root: str | os.PathLike) -> list[Path]:
