@@ -71,6 +71,7 @@ SMOKE = {
     "write_throughput.py": (["--quick"], ("run",)),
     "simulation.py": (["--quick"], ("run",)),
     "simulation_joint_plan.py": ([str(RUN), "--no-knobs"], ("run",)),
+    "simulation_record_bytes.py": ([str(RUN)], ("run",)),
     "cycles_quality.py": (["--quick"], ("bpy", "run")),
     "cycles_reference.py": (["--quick"], ("bpy", "run")),
 }
