@@ -295,6 +295,7 @@ def test_report_shows_real_frames_beside_ours(tmp_path):
     real.mkdir()
     seq.mkdir(parents=True)
     (seq.parent / "metadata").mkdir()
+    (seq.parent / "metadata" / "render.json").write_text("{}")    # a rendered sequence (the report lists no other)
     rng = np.random.default_rng(1)
     for i in range(4):
         cv2.imwrite(str(real / f"r{i}.jpg"), rng.integers(0, 255, (48, 48, 3), dtype=np.uint8))
