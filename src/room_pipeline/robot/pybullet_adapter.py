@@ -30,6 +30,10 @@ Contact
     Soft normal contact ``f = k_n delta + c_n d(delta)/dt`` via
     ``changeDynamics(contactStiffness=k_n, contactDamping=c_n)`` **on the scope's links only**
     (set on both bodies the two springs act in series and the penetration doubles).
+    Bullet leaves ``contact_slop_mm`` of penetration uncorrected (its own 0.01 mm by default), so the
+    law reads ``delta = f / k_n + slop`` (0.260 mm at 1 N); ``contact_slop_mm: 0`` makes it exact.
+    ``solver_residual_threshold`` (Bullet's 1e-7) ends the solver's iterations early once the squared
+    impulse change falls below it.
     Coulomb friction: Bullet has one coefficient per pair, the *product* of the two bodies'
     ``lateralFriction``; the wall carries 1.0 and each scope link ``mu``.  With
     ``friction_model: switch`` a link's ``mu`` is ``mu_s`` while its speed is below
@@ -99,7 +103,9 @@ class ScopeSim:
         c = self.cid
         p.resetSimulation(physicsClientId=c)
         p.setPhysicsEngineParameter(fixedTimeStep=params.time_step_s, numSolverIterations=params.solver_iterations,
-                                    numSubSteps=0, deterministicOverlappingPairs=1, physicsClientId=c)
+                                    numSubSteps=0, deterministicOverlappingPairs=1,
+                                    solverResidualThreshold=params.solver_residual_threshold,
+                                    contactSlop=params.contact_slop_mm * 1e-3, physicsClientId=c)
         p.setGravity(0.0, 0.0, -params.gravity_m_s2, physicsClientId=c)
         self.radius = 0.5 * params.scope_diameter_mm * 1e-3
         self.n_shaft, self.n_bend = int(n_shaft), params.n_links
@@ -418,7 +424,7 @@ class ScopeSim:
 
 def press_capsule(time_step_s: float, solver_iterations: int, wall_margin_m: float, radius: float, length: float,
                   mass: float, contact_stiffness: float, contact_damping: float, friction: float, force_n: float,
-                  steps: int) -> tuple[float, float]:
+                  steps: int, solver_residual_threshold: float = 1e-7, contact_slop_m: float = 1e-5) -> tuple[float, float]:
     """One free capsule (``radius``, ``length``, ``mass``; soft contact on it alone) lying along world y
     on a triangle-mesh floor at z = 0 (concave trimesh, friction 1.0, collision margin ``wall_margin_m``),
     no gravity, pushed down by ``force_n`` N at its centre for ``steps`` steps.
@@ -429,7 +435,9 @@ def press_capsule(time_step_s: float, solver_iterations: int, wall_margin_m: flo
     c = p.connect(p.DIRECT)
     try:
         p.setPhysicsEngineParameter(fixedTimeStep=time_step_s, numSolverIterations=solver_iterations,
-                                    numSubSteps=0, deterministicOverlappingPairs=1, physicsClientId=c)
+                                    numSubSteps=0, deterministicOverlappingPairs=1,
+                                    solverResidualThreshold=solver_residual_threshold, contactSlop=contact_slop_m,
+                                    physicsClientId=c)
         p.setGravity(0.0, 0.0, 0.0, physicsClientId=c)
         floor = p.createCollisionShape(p.GEOM_MESH, vertices=[[-0.05, -0.05, 0.0], [0.05, -0.05, 0.0],
                                                               [0.05, 0.05, 0.0], [-0.05, 0.05, 0.0]],
