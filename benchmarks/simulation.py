@@ -6,6 +6,8 @@
     .venv/bin/python benchmarks/simulation.py --reachability OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --plan-tracking OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --reference-contact OUTPUT_DIR [OUTPUT_DIR ...]
+    .venv/bin/python benchmarks/simulation.py --contact-candidates OUTPUT_DIR [OUTPUT_DIR ...]
+    .venv/bin/python benchmarks/simulation.py --contact-candidates-md
 
 (The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
 after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
@@ -566,6 +568,94 @@ def reference_in_contact(dirs: list[str]) -> None:
     print("\n".join(md))
 
 
+#: what might make the issue's 1 ms reference agree with the 0.5 ms run in contact: (label, overrides, the step of
+#: the first run, the step of the run it is compared with); every run at the physical mass, no step halving
+CONTACT_CANDIDATES = [
+    ("as configured (Bullet's slop 0.01 mm, residual threshold 1e-7, 10 iterations, friction)", {}, 1e-3, 5e-4),
+    ("Bullet's contact slop 0 and residual threshold 0 (every iteration runs)",
+     {"contact_slop_mm": 0.0, "solver_residual_threshold": 0.0}, 1e-3, 5e-4),
+    ("... and 100 solver iterations", {"contact_slop_mm": 0.0, "solver_residual_threshold": 0.0,
+                                       "solver_iterations": 100}, 1e-3, 5e-4),
+    ("frictionless (mu_s = mu_d = 0)", {"friction_static": 0.0, "friction_dynamic": 0.0}, 1e-3, 5e-4),
+    ("joint damping halved in the 1 ms run only (its dt x D as the 0.5 ms run's)", "half_damping", 1e-3, 5e-4),
+    ("as configured, 0.25 ms against 0.5 ms (does the step converge?)", {}, 2.5e-4, 5e-4),
+]
+
+
+def contact_candidates(dirs: list[str]) -> None:
+    """The candidates for the 1 ms reference's disagreement with the 0.5 ms run in contact, each scored as the
+    view difference of the two runs at the frames either is in contact, and their median contact force there.
+    Writes benchmarks/results/simulation_contact_candidates.{json,md} (rows of other patients are kept)."""
+    res = ROOT / "benchmarks" / "results"
+    jpath = res / "simulation_contact_candidates.json"
+    rows: list[dict] = []
+    for d in dirs:
+        for root in sorted(Path(d).glob("patient_*")):
+            if not (root / "sequence_000" / "metadata" / "trajectory.json").exists():
+                continue
+            seq = f"{root.name}/sequence_000"
+            traj, mesh = _load_sequence(root)
+            runs: dict = {}
+
+            def run(over: dict, dt: float):
+                key = (json.dumps(over, sort_keys=True), dt)
+                if key not in runs:
+                    c0 = time.process_time()
+                    r = simulate(traj, mesh, SimParams(**{**PHYS_REF, **over, "time_step_s": dt,
+                                                          "max_step_halvings": 0}), G)
+                    runs[key] = (r, time.process_time() - c0)
+                return runs[key]
+            for label, over, dt_a, dt_b in CONTACT_CANDIDATES:
+                over_a = {"joint_damping": 0.5 * SimParams().joint_damping} if over == "half_damping" else over
+                over_b = {} if over == "half_damping" else over
+                (a, cpu_a), (b, cpu_b) = run(over_a, dt_a), run(over_b, dt_b)
+                ang = np.degrees([math.atan2(np.linalg.norm(np.cross(x[:3, 2], y[:3, 2])), float(x[:3, 2] @ y[:3, 2]))
+                                  for x, y in zip(a.tip_poses, b.tip_poses)])
+                dp = np.linalg.norm(a.tip_poses[:, :3, 3] - b.tip_poses[:, :3, 3], axis=1) / MM
+                inc = (a.contact_force_n > 0) | (b.contact_force_n > 0)
+                rows.append({"sequence": seq, "candidate": label, "overrides_a": over_a, "overrides_b": over_b,
+                             "time_step_s_a": dt_a, "time_step_s_b": dt_b, "frames": int(len(ang)),
+                             "frames_in_contact": int(inc.sum()), "view_deg_p95_all": float(np.percentile(ang, 95)),
+                             "view_deg_p95_in_contact": float(np.percentile(ang[inc], 95)) if inc.any() else None,
+                             "view_deg_max_out_of_contact": float(ang[~inc].max()) if (~inc).any() else None,
+                             "tip_mm_p95": float(np.percentile(dp, 95)),
+                             "force_n_median_in_contact_a": float(np.median(a.contact_force_n[inc])) if inc.any() else 0.0,
+                             "force_n_median_in_contact_b": float(np.median(b.contact_force_n[inc])) if inc.any() else 0.0,
+                             "penetration_mm_max_a": a.report["penetration_mm"]["max"], "cpu_time_s_a": cpu_a,
+                             "loadavg": os.getloadavg()[0],
+                             "command": f"python benchmarks/simulation.py --contact-candidates {d}"})
+                print(json.dumps(rows[-1]), flush=True)
+    new = {r["sequence"] for r in rows}          # the rows of other sequences (other runs of this command) are kept
+    old = json.loads(jpath.read_text())["rows"] if jpath.exists() else []
+    rows = sorted([r for r in old if r["sequence"] not in new] + rows, key=lambda r: r["sequence"])
+    jpath.write_text(json.dumps({"rows": rows}, indent=1))
+    contact_candidates_markdown(rows)
+
+
+def contact_candidates_markdown(rows: list[dict]) -> None:
+    """benchmarks/results/simulation_contact_candidates.md from the rows of its .json."""
+    res = ROOT / "benchmarks" / "results"
+    md = ["# Why the issue's 1 ms reference departs from the 0.5 ms run in contact (benchmarks/simulation.py "
+          "--contact-candidates)", "",
+          "Physical mass, no step halving, the default sequences with the joint plan.  Each row: run a (the first step) "
+          "against run b (the second step), with the row's settings in both (the halved-damping row: in run a only).  "
+          "In contact = either run has a wall contact at the recorded frame.  CPU time of run a under load (2 shared "
+          "cores).  Commands: " + ", ".join(sorted({f"`{r['command']}`" for r in rows})) + " (DIR: a fresh "
+          "`room run --patient patient_00N --until trajectory output_dir=DIR`, one patient a folder).", "",
+          "| sequence | candidate | steps a / b ms | frames in contact | view diff p95 all / in contact deg | "
+          "view diff max out of contact deg | tip p95 mm | median contact force in contact a / b N | run a max pen mm |",
+          "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        pin = "-" if r["view_deg_p95_in_contact"] is None else f"{r['view_deg_p95_in_contact']:.2f}"
+        pout = "-" if r["view_deg_max_out_of_contact"] is None else f"{r['view_deg_max_out_of_contact']:.3f}"
+        md.append(f"| {r['sequence']} | {r['candidate']} | {r['time_step_s_a'] * 1e3:g} / {r['time_step_s_b'] * 1e3:g} | "
+                  f"{r['frames_in_contact']} / {r['frames']} | {r['view_deg_p95_all']:.2f} / {pin} | {pout} | "
+                  f"{r['tip_mm_p95']:.3f} | {r['force_n_median_in_contact_a']:.4f} / {r['force_n_median_in_contact_b']:.4f} | "
+                  f"{r['penetration_mm_max_a']:.3f} |")
+    (res / "simulation_contact_candidates.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
 def plan_tracking(dirs: list[str]) -> None:
     """Issue #17's simulated-vs-planned figures on pipeline outputs (after ``room stage trajectory`` and
     ``room stage simulate`` of each sequence_000): the joint plan's departure from the centreline path
@@ -625,6 +715,14 @@ def main() -> None:
     if "--reference-contact" in sys.argv:
         i = sys.argv.index("--reference-contact")
         reference_in_contact([a for a in sys.argv[i + 1:] if not a.startswith("--")])
+        return
+    if "--contact-candidates-md" in sys.argv:      # rewrite the .md from the .json
+        contact_candidates_markdown(json.loads((ROOT / "benchmarks" / "results" / "simulation_contact_candidates.json")
+                                               .read_text())["rows"])
+        return
+    if "--contact-candidates" in sys.argv:
+        i = sys.argv.index("--contact-candidates")
+        contact_candidates([a for a in sys.argv[i + 1:] if not a.startswith("--")])
         return
     if "--plan-tracking" in sys.argv:
         i = sys.argv.index("--plan-tracking")

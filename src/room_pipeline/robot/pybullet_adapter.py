@@ -25,6 +25,12 @@ Scope model
     ``theta + dt*omega`` and the damper at the velocity predicted with the joint-space mass
     matrix, so the stiff, light chain is stable at a 5 ms step.  ``explicit``:
     ``tau = k (theta* - theta) - c dtheta/dt`` with raised link inertia (``inertia_factor``).
+    The stable PD's torque is ``M (M + dt D)^-1 (k e - D omega)``: the spring's ``k e`` in free motion,
+    but where the wall holds a joint still only the share ``M (M + dt D)^-1`` of it (its prediction
+    does not know the contact), a share that grows with ``M / (dt D)``: a resting contact presses
+    harder at a smaller step or a larger mass (physical mass: the 1 ms run about half the 0.5 ms
+    run's force; mass x10 at 5 ms has the 0.5 ms run's ``M / (dt D)``;
+    benchmarks/results/simulation_contact_candidates.md).
 
 Contact
     Soft normal contact ``f = k_n delta + c_n d(delta)/dt`` via
