@@ -8,6 +8,7 @@
     .venv/bin/python benchmarks/simulation.py --reference-contact OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --contact-candidates OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --contact-candidates-md
+    .venv/bin/python benchmarks/simulation.py --friction-chatter
 
 (The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
 after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
@@ -656,6 +657,47 @@ def contact_candidates_markdown(rows: list[dict]) -> None:
     print("\n".join(md))
 
 
+#: the friction probe's chatter at the default step (0.5 N along a flat wall): (label, SimParams overrides)
+CHATTER_CASES = [
+    ("defaults (mass x10, 5 ms)", {}),
+    ("mass matrix every step", {"mass_matrix_every": 1}),
+    ("50 solver iterations", {"solver_iterations": 50}),
+    ("contact damping x5 (4 N s/m)", {"contact_damping": 4.0}),
+    ("joint damping halved", {"joint_damping": 2.5e-4}),
+    ("2.5 ms, joint damping doubled (dt D as the default's)", {"time_step_s": 2.5e-3, "joint_damping": 1e-3}),
+    ("2.5 ms", {"time_step_s": 2.5e-3}),
+    ("mass x20", {"mass_scale": 20.0}),
+    ("mass x30", {"mass_scale": 30.0}),
+]
+
+
+def friction_chatter() -> None:
+    """Which setting stops the friction probe's chatter at the default step: mu recovered (mu_d = 0.25), mean normal
+    force (0.5 N pressed), and the link's contact frequency x step, sqrt(k_n / m_link) dt.  Writes
+    benchmarks/results/simulation_friction_chatter.{json,md}."""
+    from room_pipeline.robot.probes import friction_probe
+
+    rows = []
+    for label, kw in CHATTER_CASES:
+        prm = SimParams(**kw)
+        m_link = prm.linear_density_kg_m * prm.mass_scale * G.l / prm.n_links
+        r = friction_probe(prm, G, 0.5, speed_mm_s=5.0)
+        rows.append({"case": label, "overrides": kw, "omega_contact_dt": math.sqrt(prm.contact_stiffness / m_link)
+                     * prm.time_step_s, **r})
+        print(json.dumps(rows[-1]), flush=True)
+    res = ROOT / "benchmarks" / "results"
+    (res / "simulation_friction_chatter.json").write_text(json.dumps({"rows": rows}, indent=1))
+    md = ["# The friction probe's chatter at the default step (benchmarks/simulation.py --friction-chatter)", "",
+          "`friction_probe`: the straight scope pushed along a flat wall at 0.5 N, 5 mm/s (mu_d = 0.25 to recover).  "
+          "omega dt = sqrt(k_n / m_link) x time step (m_link: one link's simulated mass).  Command: `python "
+          "benchmarks/simulation.py --friction-chatter`", "",
+          "| case | omega dt | mu measured | normal N | links' slip mm/s |", "|---|---|---|---|---|"]
+    md += [f"| {r['case']} | {r['omega_contact_dt']:.1f} | {r['mu']:.3f} | {r['normal_n']:.3f} | {r['slip_mm_s']:.2f} |"
+           for r in rows]
+    (res / "simulation_friction_chatter.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
 def plan_tracking(dirs: list[str]) -> None:
     """Issue #17's simulated-vs-planned figures on pipeline outputs (after ``room stage trajectory`` and
     ``room stage simulate`` of each sequence_000): the joint plan's departure from the centreline path
@@ -715,6 +757,9 @@ def main() -> None:
     if "--reference-contact" in sys.argv:
         i = sys.argv.index("--reference-contact")
         reference_in_contact([a for a in sys.argv[i + 1:] if not a.startswith("--")])
+        return
+    if "--friction-chatter" in sys.argv:
+        friction_chatter()
         return
     if "--contact-candidates-md" in sys.argv:      # rewrite the .md from the .json
         contact_candidates_markdown(json.loads((ROOT / "benchmarks" / "results" / "simulation_contact_candidates.json")
