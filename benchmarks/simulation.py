@@ -9,6 +9,7 @@
     .venv/bin/python benchmarks/simulation.py --contact-candidates OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --contact-candidates-md
     .venv/bin/python benchmarks/simulation.py --friction-chatter
+    .venv/bin/python benchmarks/simulation.py --plan-clearance OUTPUT_DIR [OUTPUT_DIR ...]
 
 (The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
 after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
@@ -698,6 +699,47 @@ def friction_chatter() -> None:
     print("\n".join(md))
 
 
+def plan_clearance(dirs: list[str]) -> None:
+    """Where the default run touches the wall against where the plan itself puts the camera closer to the wall
+    than the scope's radius (trajectory.json ``clearance``: the camera position's distance to the wall).
+    Writes benchmarks/results/simulation_plan_clearance.{json,md}."""
+    rows = []
+    radius_mm = 0.5 * SimParams().scope_diameter_mm
+    for d in dirs:
+        for root in sorted(Path(d).glob("patient_*")):
+            tj = root / "sequence_000" / "metadata" / "trajectory.json"
+            if not tj.exists():
+                continue
+            traj, mesh = _load_sequence(root)
+            clear = np.array([f["clearance"] for f in json.loads(tj.read_text())["frames"]]) / MM
+            r = simulate(traj, mesh, SimParams(), G)
+            inc, narrow = r.contact_force_n > 0, clear < radius_mm
+            rows.append({"sequence": f"{root.name}/sequence_000", "frames": int(len(clear)),
+                         "frames_in_contact": int(inc.sum()), "frames_narrow": int(narrow.sum()),
+                         "narrow_and_contact": int((inc & narrow).sum()),
+                         "first_narrow_frame": int(np.argmax(narrow)) if narrow.any() else None,
+                         "first_contact_frame": int(np.argmax(inc)) if inc.any() else None,
+                         "clearance_mm_min": float(clear.min()),
+                         "clearance_mm_median_in_contact": float(np.median(clear[inc])) if inc.any() else None,
+                         "command": f"python benchmarks/simulation.py --plan-clearance {d}"})
+            print(json.dumps(rows[-1]), flush=True)
+    res = ROOT / "benchmarks" / "results"
+    (res / "simulation_plan_clearance.json").write_text(json.dumps({"rows": rows, "scope_radius_mm": radius_mm}, indent=1))
+    md = ["# Contact frames against the plan's own camera clearance (benchmarks/simulation.py --plan-clearance)", "",
+          f"Narrow = the planned camera is closer to the wall than the scope's radius ({radius_mm:g} mm; trajectory.json "
+          "`clearance`), so the plan itself puts the tip into the wall; contact = the default run (simulate defaults) "
+          "has a wall contact at the frame.  Commands: " + ", ".join(sorted({f"`{r['command']}`" for r in rows})), "",
+          "| sequence | frames | in contact | narrow | narrow and in contact | first narrow / first contact frame | "
+          "camera clearance min / median in contact mm |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        med = "-" if r["clearance_mm_median_in_contact"] is None else f"{r['clearance_mm_median_in_contact']:.2f}"
+        md.append(f"| {r['sequence']} | {r['frames']} | {r['frames_in_contact']} | {r['frames_narrow']} | "
+                  f"{r['narrow_and_contact']} | {r['first_narrow_frame']} / {r['first_contact_frame']} | "
+                  f"{r['clearance_mm_min']:.2f} / {med} |")
+    (res / "simulation_plan_clearance.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
 def plan_tracking(dirs: list[str]) -> None:
     """Issue #17's simulated-vs-planned figures on pipeline outputs (after ``room stage trajectory`` and
     ``room stage simulate`` of each sequence_000): the joint plan's departure from the centreline path
@@ -757,6 +799,10 @@ def main() -> None:
     if "--reference-contact" in sys.argv:
         i = sys.argv.index("--reference-contact")
         reference_in_contact([a for a in sys.argv[i + 1:] if not a.startswith("--")])
+        return
+    if "--plan-clearance" in sys.argv:
+        i = sys.argv.index("--plan-clearance")
+        plan_clearance([a for a in sys.argv[i + 1:] if not a.startswith("--")])
         return
     if "--friction-chatter" in sys.argv:
         friction_chatter()
