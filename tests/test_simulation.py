@@ -145,6 +145,21 @@ def test_contact_law_one_and_two_newton():
         assert pen == pytest.approx(expected, rel=0.2)
 
 
+def test_contact_slop_is_the_contact_law_offset():
+    """Bullet leaves contact_slop_mm of penetration uncorrected: the law is k_n delta + slop (0.01 mm by default,
+    Bullet's own), exact with slop 0; the step and the mass do not move it, nor does the residual threshold."""
+    for mass, dt in ((10.0, 5e-3), (1.0, 1e-3), (1.0, 5e-4)):
+        prm = SimParams(mass_scale=mass, time_step_s=dt)
+        for force in (0.02, 1.0):
+            exact = force / prm.contact_stiffness
+            assert contact_probe(prm, force)[0] == pytest.approx(exact + 0.01 * MM, abs=1e-4 * MM)
+            tight = dataclasses.replace(prm, contact_slop_mm=0.0, solver_residual_threshold=0.0)
+            assert contact_probe(tight, force)[0] == pytest.approx(exact, abs=1e-4 * MM)
+    for name in ("contact_slop_mm", "solver_residual_threshold"):
+        with pytest.raises(ConfigError, match=name):
+            SimParams(**{name: -1.0})
+
+
 def test_wall_margin_is_the_wall_offset():
     """The airway mesh's Bullet margin inflates the wall: 0 keeps the true surface, Bullet's 1 mm default does not."""
     light = SimParams(mass_scale=1.0)                                # (the offset is geometry: any mass shows it)

@@ -28,7 +28,8 @@ def contact_probe(params: SimParams, force_n: float, time_s: float = 1.0) -> tup
     z, fn = press_capsule(params.time_step_s, params.solver_iterations, params.wall_margin_mm * 1e-3, r, L,
                           params.linear_density_kg_m * params.mass_scale * L, params.contact_stiffness,
                           params.contact_damping, params.friction_dynamic, force_n,
-                          int(round(time_s / params.time_step_s)))
+                          int(round(time_s / params.time_step_s)), params.solver_residual_threshold,
+                          params.contact_slop_mm * 1e-3)
     return r - z, fn
 
 

@@ -25,11 +25,21 @@ Scope model
     ``theta + dt*omega`` and the damper at the velocity predicted with the joint-space mass
     matrix, so the stiff, light chain is stable at a 5 ms step.  ``explicit``:
     ``tau = k (theta* - theta) - c dtheta/dt`` with raised link inertia (``inertia_factor``).
+    The stable PD's torque is ``M (M + dt D)^-1 (k e - D omega)``: the spring's ``k e`` in free motion,
+    but where the wall holds a joint still only the share ``M (M + dt D)^-1`` of it (its prediction
+    does not know the contact), a share that grows with ``M / (dt D)``: a resting contact presses
+    harder at a smaller step or a larger mass (physical mass: the 1 ms run about half the 0.5 ms
+    run's force; mass x10 at 5 ms has the 0.5 ms run's ``M / (dt D)``;
+    benchmarks/results/simulation_contact_candidates.md).
 
 Contact
     Soft normal contact ``f = k_n delta + c_n d(delta)/dt`` via
     ``changeDynamics(contactStiffness=k_n, contactDamping=c_n)`` **on the scope's links only**
     (set on both bodies the two springs act in series and the penetration doubles).
+    Bullet leaves ``contact_slop_mm`` of penetration uncorrected (its own 0.01 mm by default), so the
+    law reads ``delta = f / k_n + slop`` (0.260 mm at 1 N); ``contact_slop_mm: 0`` makes it exact.
+    ``solver_residual_threshold`` (Bullet's 1e-7) ends the solver's iterations early once the squared
+    impulse change falls below it.
     Coulomb friction: Bullet has one coefficient per pair, the *product* of the two bodies'
     ``lateralFriction``; the wall carries 1.0 and each scope link ``mu``.  With
     ``friction_model: switch`` a link's ``mu`` is ``mu_s`` while its speed is below
@@ -99,7 +109,9 @@ class ScopeSim:
         c = self.cid
         p.resetSimulation(physicsClientId=c)
         p.setPhysicsEngineParameter(fixedTimeStep=params.time_step_s, numSolverIterations=params.solver_iterations,
-                                    numSubSteps=0, deterministicOverlappingPairs=1, physicsClientId=c)
+                                    numSubSteps=0, deterministicOverlappingPairs=1,
+                                    solverResidualThreshold=params.solver_residual_threshold,
+                                    contactSlop=params.contact_slop_mm * 1e-3, physicsClientId=c)
         p.setGravity(0.0, 0.0, -params.gravity_m_s2, physicsClientId=c)
         self.radius = 0.5 * params.scope_diameter_mm * 1e-3
         self.n_shaft, self.n_bend = int(n_shaft), params.n_links
@@ -418,7 +430,7 @@ class ScopeSim:
 
 def press_capsule(time_step_s: float, solver_iterations: int, wall_margin_m: float, radius: float, length: float,
                   mass: float, contact_stiffness: float, contact_damping: float, friction: float, force_n: float,
-                  steps: int) -> tuple[float, float]:
+                  steps: int, solver_residual_threshold: float = 1e-7, contact_slop_m: float = 1e-5) -> tuple[float, float]:
     """One free capsule (``radius``, ``length``, ``mass``; soft contact on it alone) lying along world y
     on a triangle-mesh floor at z = 0 (concave trimesh, friction 1.0, collision margin ``wall_margin_m``),
     no gravity, pushed down by ``force_n`` N at its centre for ``steps`` steps.
@@ -429,7 +441,9 @@ def press_capsule(time_step_s: float, solver_iterations: int, wall_margin_m: flo
     c = p.connect(p.DIRECT)
     try:
         p.setPhysicsEngineParameter(fixedTimeStep=time_step_s, numSolverIterations=solver_iterations,
-                                    numSubSteps=0, deterministicOverlappingPairs=1, physicsClientId=c)
+                                    numSubSteps=0, deterministicOverlappingPairs=1,
+                                    solverResidualThreshold=solver_residual_threshold, contactSlop=contact_slop_m,
+                                    physicsClientId=c)
         p.setGravity(0.0, 0.0, 0.0, physicsClientId=c)
         floor = p.createCollisionShape(p.GEOM_MESH, vertices=[[-0.05, -0.05, 0.0], [0.05, -0.05, 0.0],
                                                               [0.05, 0.05, 0.0], [-0.05, 0.05, 0.0]],

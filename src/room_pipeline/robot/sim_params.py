@@ -30,6 +30,8 @@ class SimParams:
     unstable_penetration_mm: float = 1.0    # a run deeper than this (or non-finite) is redone at half the step
     max_step_halvings: int = 2              # ... at most this many times
     solver_iterations: int = 10             # Bullet constraint-solver iterations per step
+    solver_residual_threshold: float = 1.0e-7  # Bullet stops iterating when the squared impulse change is below this
+    contact_slop_mm: float = 0.01           # Bullet leaves penetration up to this uncorrected (linear slop), mm
     n_links: int = 10                       # capsules in the bending segment
     scope_diameter_mm: float = 5.0          # outer diameter (Ambu aScope 4 Regular: 5.0 mm)
     linear_density_kg_m: float = 0.03       # scope mass per length
@@ -113,7 +115,8 @@ class SimParams:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"simulate.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("collision_corridor_mm", "max_step_halvings", "wall_margin_mm", "inertia_factor", "mass_damping_per_s", "contact_damping", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
+        for name in ("collision_corridor_mm", "max_step_halvings", "wall_margin_mm", "inertia_factor", "mass_damping_per_s", "contact_damping",
+                     "solver_residual_threshold", "contact_slop_mm", "friction_static", "friction_dynamic", "slip_speed_mm_s", "gravity_m_s2",
                      "delay_max_s", "gain_q1", "gain_q2", "settle_time_s",
                      "roll_hold_q1_fraction", "roll_free_q1_fraction"):
             if getattr(self, name) < 0:
