@@ -23,6 +23,9 @@ from pathlib import Path
 
 from .catalog import DEPTH_FINETUNE_JSON, DEPTH_MODEL, EVALUATION, EvaluationPaths, SequencePaths
 
+#: stages whose metrics file is not named after the stage (``metrics/<name>.json``)
+METRICS_NAMES = {"validate_anatomy": "anatomy_validation", "validate_centreline": "centreline_validation"}
+
 
 @dataclasses.dataclass(frozen=True)
 class PatientPaths:
@@ -104,8 +107,19 @@ class PatientPaths:
         return self.anatomy / "mesh_metadata.json"
 
     @property
+    def volume_mesh(self) -> Path:
+        """``anatomy/volume_mesh/``: the optional tetrahedral mesh and its ``info.json`` (mesh stage)."""
+        return self.anatomy / "volume_mesh"
+
+    @property
     def tet_mesh(self) -> Path:
-        return self.anatomy / "lung_model_tet.npz"
+        """``anatomy/volume_mesh/lung_model_tet.npz`` (vertices in metres, tetrahedra), when made."""
+        return self.volume_mesh / "lung_model_tet.npz"
+
+    @property
+    def volume_mesh_info(self) -> Path:
+        """``anatomy/volume_mesh/info.json``: whether the volume mesh was made, and why not."""
+        return self.volume_mesh / "info.json"
 
     @property
     def medial_axis_ply(self) -> Path:
@@ -156,6 +170,12 @@ class PatientPaths:
 
     def metrics(self, stage: str) -> Path:
         return self.metrics_dir / f"{stage}.json"
+
+    def stage_metrics(self, stage: str, sequence: str = "") -> Path:
+        """The DVC metrics file of pipeline stage ``stage`` (for ``sequence`` when it fans out over sequences):
+        ``metrics/<stage>[_<sequence>].json``, or the stage's own name in :data:`METRICS_NAMES`."""
+        name = METRICS_NAMES.get(stage, stage)
+        return self.metrics(f"{name}_{sequence}" if sequence else name)
 
     def timings(self, stage: str) -> Path:
         """``metrics/<stage>.timing.json`` (see :mod:`room_pipeline.io.metrics`)."""
