@@ -16,15 +16,25 @@ No file or folder name of the dataset is spelled here (``tests/test_spine.py`` c
   (``scripts/stage_deps.py``).
 - **fan-out**: :data:`room_pipeline.stages.FAN_OUT` (``foreach`` over ``${phantoms}`` / ``${patients}``, a
   ``matrix`` over patients x ``${sequences}``, once for the dataset, once for the depth CNN's training patient).
-- **train_depth**: every configured sequence of its patient, expanded from params.yaml's ``sequences`` when
-  this file is generated (rerun this script after changing it; ``sequences`` is a param).
+- **train_depth and ``sequences``**: train_depth trains on every configured sequence of its patient, and a
+  dvc.yaml dep cannot be interpolated from a list (DVC: "Cannot interpolate data of type 'list'").  Copying
+  the default ``sequences`` into this file went stale after ``dvc exp run -S 'sequences=[...]'``: the new
+  sequences' frames were no deps, so DVC ran train_depth without waiting for their render/noise stages and
+  without seeing their frames change.  Instead train_depth depends on the training patient's
+  :attr:`PatientPaths.sequence_index` folder (``<patient>/sequence_index/``), where every sequence's `render`
+  and `noise` stage writes one record (``<sequence>.render.json``, ``<sequence>.noise.json``: the sha256 of
+  the frames, calibration and render.json train_depth reads; :func:`stages.common.write_sequence_record`).  A
+  dep on a folder that other stages' outs lie in makes DVC run train_depth after each of those stages, for
+  whatever ``sequences`` is when DVC reads dvc.yaml, and the folder's hash changes when a sequence is added or
+  its frames change.  ``sequences`` stays a param of train_depth (it decides which sequences it reads, and a
+  removed sequence's record stays on disk).  The patient folder itself cannot be the dep: it holds
+  train_depth's own outs (a cycle for DVC).  Cost: each render/noise run hashes the frames it wrote once more.
 """
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
-import yaml
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -50,9 +60,6 @@ T = PatientPaths(Path(OUT), TRAIN)
 #: the image folder the depth stages read (depth.input: one of catalog.RGB_SOURCES)
 DEPTH_INPUT = "${depth.input}"
 
-#: the default configuration's sequences (for train_depth, which reads all of a patient's sequences)
-SEQUENCES = yaml.safe_load((ROOT / "params.yaml").read_text(encoding="utf-8"))["sequences"]
-
 #: name -> file deps (upstream outputs and input files; the code deps are added from the import closure)
 DEPS = {
     "phantom": [],
@@ -72,9 +79,9 @@ DEPS = {
     "noise": [S.folder("rgb"), "${noise.profile}", "data/noise_profiles"],
     # reads rgb_noisy (evaluate.pose.images: noisy) or rgb
     "evaluate_pose": [S.folder("rgb"), S.rgb_noisy, S.calibration, S.render_json, Q.centreline_graph],
-    # every configured sequence of the training patient (module docstring)
-    "train_depth": [d for s in SEQUENCES for d in (T.seq(s).root / DEPTH_INPUT, T.seq(s).folder("depth"),
-                                                   T.seq(s).calibration, T.seq(s).render_json)],
+    # every configured sequence of the training patient, through the records of its render and noise stages
+    # (module docstring)
+    "train_depth": [T.sequence_index],
     "evaluate_depth": [S.root / DEPTH_INPUT, S.folder("depth"), S.calibration, S.render_json, T.depth_model],
     # once over the dataset: every evaluation result lives under ${output_dir}/evaluation
     "tables": [catalog.evaluation_root(OUT)],

@@ -118,6 +118,7 @@ def _catalogue_paths() -> set[str]:
         for seq in ["${item.sequence}", *cfg.sequences]:
             sp = pp.seq(seq)
             found |= props(sp) | props(pp.eval(seq)) | {str(sp.folder(m)) for m in catalog.FOLDERS}
+            found |= {str(pp.sequence_record(seq, name)) for name in stages.STAGES}
             for name in stages.STAGES:
                 m = pp.stage_metrics(name, seq if stages.FAN_OUT[name] == "sequences" else "")
                 found |= {str(m), str(timing_path(m))}
@@ -243,3 +244,22 @@ def test_dvcignore_drops_bytecode_from_the_package_deps():
     folders = {d for st in dvc["stages"].values() for d in st.get("do", st)["deps"]
                if d.startswith("src/") and not d.endswith(".py")}
     assert folders and all((REPO / d).is_dir() for d in folders)
+
+
+def test_train_depth_waits_for_every_configured_sequence(tmp_path):
+    """DVC's own graph: with `sequences` changed in params.yaml (what `dvc exp run -S sequences=[...]` writes),
+    train_depth runs after the render and noise stages of every sequence of its patient, with dvc.yaml
+    unchanged (its dep is the patient's sequence_index/ folder, not a copy of the list)."""
+    from dvc.repo import Repo
+
+    params = yaml.safe_load((REPO / "params.yaml").read_text(encoding="utf-8"))
+    params["sequences"] = ["sequence_000", "sequence_007"]
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params), encoding="utf-8")
+    (tmp_path / "dvc.yaml").write_text((REPO / "dvc.yaml").read_text(encoding="utf-8"), encoding="utf-8")
+    Repo.init(str(tmp_path), no_scm=True)
+    graph = Repo(str(tmp_path)).index.graph
+    train = next(s for s in graph if s.name == "train_depth")
+    upstream = {s.name for s in graph.successors(train)}
+    patient = params["depth"]["cnn"]["checkpoint_patient"]
+    assert upstream >= {f"{st}@{patient}-{seq}" for st in ("render", "noise") for seq in params["sequences"]}
+    assert not [d for d in train.deps if "sequence_0" in str(d)], "train_depth names a sequence: stale under -S"

@@ -11,6 +11,7 @@
     ``anatomy/medial_axis.ply``         medial points with radius, polyline edges
     ``anatomy/centreline_graph.json``   navigation tree (branches, parents, generations, radii)
     ``sequence_YYY/metadata/``          trajectory.json, timestamps.json, trajectory_tum.txt
+    ``sequence_index/<sequence>.{render,noise}.json``  sha256 of the frames the depth CNN trains on (DVC dep)
     ``metrics/<stage>.json``            per-stage DVC metrics (accuracy)
     ``metrics/<stage>.timing.json``     its timings (wall/CPU time, throughput, peak RSS; uncached DVC out)
 ``<output_dir>/evaluation/<patient>/<sequence>/``  pose / depth benchmark results (read by `tables`)
@@ -163,6 +164,17 @@ class PatientPaths:
     def depth_model(self) -> Path:
         """``<patient>/depth_model/``: the fine-tuned depth network's checkpoints (train_depth)."""
         return self.root / DEPTH_MODEL
+
+    @property
+    def sequence_index(self) -> Path:
+        """``<patient>/sequence_index/``: one record per rendered sequence and stage (:meth:`sequence_record`);
+        train_depth's DVC dep, which stays right whatever ``sequences`` is (scripts/write_dvc_yaml.py)."""
+        return self.root / "sequence_index"
+
+    def sequence_record(self, sequence: str, stage: str) -> Path:
+        """``sequence_index/<sequence>.<stage>.json``: the sha256 of the sequence outputs of ``stage`` (render,
+        noise) that the depth stages read."""
+        return self.sequence_index / f"{sequence}.{stage}.json"
 
     @property
     def metrics_dir(self) -> Path:

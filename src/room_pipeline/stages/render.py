@@ -19,7 +19,7 @@ from ..io.mesh import read_obj
 from ..io.storage import POINT_CLOUD_JSON
 from ..render.params import RenderParams
 from ..render.sequence import execution_params, load_poses, render_sequence, select_frames
-from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
+from .common import StageTimer, metadata, patient_paths, read_json, write_metrics, write_sequence_record
 
 # re-exported for benchmarks and tests that other engineers edit this round (their new home: render/)
 from ..render.params import (camera_of, exposure_params, indirect_config, raycast_config,  # noqa: E402,F401
@@ -30,7 +30,8 @@ from ..render.sequence import face_labels  # noqa: E402,F401
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
     seq = patient_paths(cfg, patient).seq(sequence)
-    return seq.render_folders() + [seq.calibration, seq.render_json]
+    return seq.render_folders() + [seq.calibration, seq.render_json,
+                                   patient_paths(cfg, patient).sequence_record(sequence, "render")]
 
 
 def run(cfg: DictConfig, key: str) -> dict:
@@ -61,5 +62,8 @@ def run(cfg: DictConfig, key: str) -> dict:
         metrics.update(sequence_metrics(sorted(sp.folder("rgb").glob("frame_*.png"))))
         if out.frame_ev is not None:
             metrics["exposure_ev_min"], metrics["exposure_ev_max"] = min(out.frame_ev), max(out.frame_ev)
+    # what train_depth reads of this sequence (its DVC dep: scripts/write_dvc_yaml.py)
+    write_sequence_record(paths, sequence, "render", {m: sp.folder(m) for m in ("rgb", "depth")}
+                          | {"calibration": sp.calibration, "render_json": sp.render_json})
     write_metrics(paths, f"render_{sequence}", metrics)
     return metrics
