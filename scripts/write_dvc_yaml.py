@@ -29,6 +29,8 @@ No file or folder name of the dataset is spelled here (``tests/test_spine.py`` c
   its frames change.  ``sequences`` stays a param of train_depth (it decides which sequences it reads, and a
   removed sequence's record stays on disk).  The patient folder itself cannot be the dep: it holds
   train_depth's own outs (a cycle for DVC).  Cost: each render/noise run hashes the frames it wrote once more.
+  As for the tables' ``evaluation/`` dep, the ``.gitignore`` DVC writes into the folder counts in its hash (a
+  failed ``dvc exp run`` that drops it makes train_depth look changed once).
 """
 from __future__ import annotations
 
