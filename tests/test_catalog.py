@@ -98,3 +98,26 @@ def test_tum_round_trip_and_empty():
     assert ts.shape == (0,) and back.shape == (0, 4, 4)
     with pytest.raises(InputError, match="8 numbers"):
         parse_tum("0 1 2 3\n")
+
+
+def test_sequence_record_hashes_what_it_names(tmp_path):
+    """sequence_index/<sequence>.<stage>.json: sha256 per named output (null when not written), the same bytes
+    for the same frames."""
+    from room_pipeline.stages.common import write_sequence_record
+
+    pp = PatientPaths(tmp_path, "p")
+    s = pp.seq("sequence_000")
+    s.folder("rgb").mkdir(parents=True)
+    s.frame("rgb", 0, ".png").write_bytes(b"frame")
+    files = {"rgb": s.folder("rgb"), "depth": s.folder("depth")}
+    write_sequence_record(pp, "sequence_000", "render", files)
+    rec = pp.sequence_record("sequence_000", "render")
+    assert rec == tmp_path / "p" / "sequence_index" / "sequence_000.render.json"
+    doc = json.loads(rec.read_text())
+    assert doc["depth"] is None and len(doc["rgb"]) == 64
+    first = rec.read_bytes()
+    write_sequence_record(pp, "sequence_000", "render", files)
+    assert rec.read_bytes() == first
+    s.frame("rgb", 0, ".png").write_bytes(b"other")
+    write_sequence_record(pp, "sequence_000", "render", files)
+    assert json.loads(rec.read_text())["rgb"] != doc["rgb"]

@@ -605,8 +605,9 @@ def test_render_stage_bytes_do_not_depend_on_the_executor(rendered_serial, tmp_p
     ref, render = rendered_serial
     metrics = _render_again(ref, tmp_path / backend, render, {"backend": backend, "workers": 2, "chunk_size": 3})
     a, b = _rendered(ref), _rendered(tmp_path / backend)
-    # 7 files a frame (point clouds on demand); legend, camera, render.json, point_clouds.json; 3 inputs
-    assert len(a) == 7 * 7 + 7 and sorted(a) == sorted(b)
+    # 7 files a frame (point clouds on demand); legend, camera, render.json, point_clouds.json, the
+    # sequence_index record (sha256 of the frames); 3 inputs
+    assert len(a) == 7 * 7 + 8 and sorted(a) == sorted(b)
     assert [k for k in a if a[k] != b[k]] == []
     assert metrics["frames"] == 7 and metrics["workers"] == 2 and metrics["peak_rss_mb"] > 0
     meta = json.loads(b["patient_t/sequence_000/metadata/render.json"])

@@ -320,7 +320,9 @@ def test_stage_writes_noisy_rgb_keeps_clean_and_is_reproducible(tmp_path):
     cfg = _stage_cfg(tmp_path, profile_path)
     m = stage.run(cfg, "p0/sequence_000")
     assert m["frames"] == 3 and 1.0 < m["added_std_levels_mean"] < 4.0
-    assert stage.outputs(cfg, "p0/sequence_000") == [seq / "rgb_noisy", seq / "metadata" / "noise.json"]
+    record = tmp_path / "out" / "p0" / "sequence_index" / "sequence_000.noise.json"     # train_depth's DVC dep
+    assert stage.outputs(cfg, "p0/sequence_000") == [seq / "rgb_noisy", seq / "metadata" / "noise.json", record]
+    assert json.loads(record.read_text()) == {"rgb_noisy": stage.file_sha256(seq / "rgb_noisy")}
     assert [(seq / "rgb" / f"frame_{i:04d}.png").read_bytes() for i in range(3)] == clean_bytes
     noisy = [(seq / "rgb_noisy" / f"frame_{i:04d}.png").read_bytes() for i in range(3)]
     assert len(set(noisy)) == 3

@@ -79,6 +79,7 @@ def test_dvc_stage_outs_match_stage_module(name):
         def render(s: str) -> str:
             s = s.replace("${output_dir}", cfg.output_dir).replace("${key}", patient)
             s = s.replace("${depth.cnn.checkpoint_patient}", cfg.depth.cnn.checkpoint_patient)
+            s = s.replace("${evaluate.tables.output_dir}", cfg.evaluate.tables.output_dir)
             return s.replace("${item.patient}", patient).replace("${item.sequence}", seq or "")
         outs = {render(next(iter(o)) if isinstance(o, dict) else o)
                 for o in body.get("outs", []) + body.get("plots", [])}
@@ -95,6 +96,91 @@ def test_dvc_stage_outs_match_stage_module(name):
             for part in render(p).split("."):
                 assert part in node, f"{name}: param {p} not in config"
                 node = node[part]
+
+
+def _catalogue_paths() -> set[str]:
+    """Every path the catalogue (room_pipeline.paths / room_pipeline.catalog) builds on dvc.yaml's placeholders:
+    the patient-level files of each placeholder patient, the files of the placeholder sequence (and of the
+    default config's sequences), every stage's metrics and timing file."""
+    from room_pipeline import catalog
+    from room_pipeline.paths import EvaluationPaths, SequencePaths
+
+    cfg = compose(conf_dir=REPO / "conf")
+    out = "${output_dir}"
+    found = {str(catalog.evaluation_root(out))}
+
+    def props(obj) -> set[str]:
+        return {str(getattr(obj, k)) for k, v in vars(type(obj)).items() if isinstance(v, property)}
+
+    for patient in ("${key}", "${item.patient}", "${depth.cnn.checkpoint_patient}"):
+        pp = PatientPaths(Path(out), patient)
+        found |= props(pp)
+        for seq in ["${item.sequence}", *cfg.sequences]:
+            sp = pp.seq(seq)
+            found |= props(sp) | props(pp.eval(seq)) | {str(sp.folder(m)) for m in catalog.FOLDERS}
+            found |= {str(pp.sequence_record(seq, name)) for name in stages.STAGES}
+            for name in stages.STAGES:
+                m = pp.stage_metrics(name, seq if stages.FAN_OUT[name] == "sequences" else "")
+                found |= {str(m), str(timing_path(m))}
+    assert issubclass(type(pp.seq("s")), SequencePaths) and issubclass(type(pp.eval("s")), EvaluationPaths)
+    return found
+
+
+def test_dvc_yaml_names_only_files_the_catalogue_produces():
+    """Every dataset path in dvc.yaml (deps, outs, plots, metrics under ${output_dir}) is one the catalogue
+    builds; ``${depth.input}`` (a folder chosen by config) stands for each RGB source."""
+    from room_pipeline import catalog
+
+    known = _catalogue_paths()
+    dvc = yaml.safe_load((REPO / "dvc.yaml").read_text(encoding="utf-8"))
+    named = set()
+    for st in dvc["stages"].values():
+        body = st.get("do", st)
+        for field in ("deps", "outs", "plots", "metrics"):
+            named |= {next(iter(e)) if isinstance(e, dict) else e for e in body.get(field, [])}
+    dataset = sorted(p for p in named if p.startswith("${output_dir}"))
+    assert len(dataset) > 40
+    unknown = [p for p in dataset if not all(p.replace("${depth.input}", s) in known for s in catalog.RGB_SOURCES)]
+    assert not unknown, f"dvc.yaml names dataset paths the catalogue does not produce: {unknown}"
+
+
+def _layout_names() -> set[str]:
+    """File and folder names of the dataset layout that are no modality key, stage name or config key."""
+    from room_pipeline import catalog
+
+    names = set()
+    for p in _catalogue_paths():
+        names |= {part for part in p.split("/") if "$" not in part}
+    names |= {v for k, v in vars(catalog).items() if k.isupper() and isinstance(v, str)}
+    cfg = compose(conf_dir=REPO / "conf")
+    keys = set(cfg) | {k for v in cfg.values() if hasattr(v, "keys") for k in v.keys()}
+    return names - set(catalog.FOLDERS) - set(stages.STAGES) - keys - {"", "sequence_000"}
+
+
+@pytest.mark.parametrize("script", ["write_dvc_yaml.py", "stage_deps.py"])
+def test_dvc_generator_spells_no_dataset_name(script):
+    """The generator builds every dataset path through the catalogue: no layout name is a literal in it."""
+    import ast
+
+    names = _layout_names()
+    assert {"lung_model.obj", "render.json", "anatomy", "metadata", "surface_normals", "evaluation"} <= names
+    tree = ast.parse((REPO / "scripts" / script).read_text(encoding="utf-8"))
+    docs = {id(n.body[0].value) for n in ast.walk(tree)             # docstrings may name the files
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef)) and ast.get_docstring(n) is not None}
+    literals = [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)
+                and id(n) not in docs]
+    found = sorted({tok for s in literals for tok in s.replace("/", " ").split() if tok in names})
+    assert not found, f"scripts/{script} spells dataset names (take them from room_pipeline.paths/catalog): {found}"
+
+
+def test_dvc_generator_sees_a_spelled_name(tmp_path):
+    """The check above finds a literal (a layout name written into the table by hand)."""
+    names = _layout_names()
+    code = 'DEPS = {"render": ["${output_dir}/${item.patient}/anatomy/lung_model.obj"]}\n'
+    import ast
+
+    literals = [n.value for n in ast.walk(ast.parse(code)) if isinstance(n, ast.Constant)]
+    assert {"anatomy", "lung_model.obj"} <= {t for s in literals for t in s.replace("/", " ").split() if t in names}
 
 
 def _room(*args, cwd=REPO):
@@ -158,3 +244,22 @@ def test_dvcignore_drops_bytecode_from_the_package_deps():
     folders = {d for st in dvc["stages"].values() for d in st.get("do", st)["deps"]
                if d.startswith("src/") and not d.endswith(".py")}
     assert folders and all((REPO / d).is_dir() for d in folders)
+
+
+def test_train_depth_waits_for_every_configured_sequence(tmp_path):
+    """DVC's own graph: with `sequences` changed in params.yaml (what `dvc exp run -S sequences=[...]` writes),
+    train_depth runs after the render and noise stages of every sequence of its patient, with dvc.yaml
+    unchanged (its dep is the patient's sequence_index/ folder, not a copy of the list)."""
+    from dvc.repo import Repo
+
+    params = yaml.safe_load((REPO / "params.yaml").read_text(encoding="utf-8"))
+    params["sequences"] = ["sequence_000", "sequence_007"]
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params), encoding="utf-8")
+    (tmp_path / "dvc.yaml").write_text((REPO / "dvc.yaml").read_text(encoding="utf-8"), encoding="utf-8")
+    Repo.init(str(tmp_path), no_scm=True)
+    graph = Repo(str(tmp_path)).index.graph
+    train = next(s for s in graph if s.name == "train_depth")
+    upstream = {s.name for s in graph.successors(train)}
+    patient = params["depth"]["cnn"]["checkpoint_patient"]
+    assert upstream >= {f"{st}@{patient}-{seq}" for st in ("render", "noise") for seq in params["sequences"]}
+    assert not [d for d in train.deps if "sequence_0" in str(d)], "train_depth names a sequence: stale under -S"

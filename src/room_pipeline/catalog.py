@@ -61,6 +61,8 @@ POSE_JSON = "pose.json"
 POSE_ERRORS_CSV = "pose_errors.csv"
 DEPTH_JSON = "depth.json"
 DEPTH_ERRORS_CSV = "depth_errors.csv"
+#: the per-frame error tables (DVC plots)
+PER_FRAME_CSVS: tuple[str, ...] = (POSE_ERRORS_CSV, DEPTH_ERRORS_CSV)
 EVALUATION = "evaluation"
 DEPTH_FINETUNE_JSON = "depth_finetune.json"
 DEPTH_MODEL = "depth_model"

@@ -62,18 +62,15 @@ def stage_output_paths(cfg, name: str, key: str) -> list[Path]:
     from . import stages
     from .paths import PatientPaths
 
-    outs = [Path(p) for p in stages.load(name).outputs(cfg, key)]
-    fan = stages.FAN_OUT[name]
-    if fan != "dataset":
-        patient, _, sequence = key.partition("/")
-        metric = f"{name}_{sequence}" if sequence else name
-        pp = PatientPaths(Path(cfg.output_dir), patient)
-        outs += [pp.metrics(metric), pp.timings(metric)]
-    else:   # the dataset stage (tables) lists its metrics file among its outputs; its timings sit beside it
-        from .io.metrics import timing_path
+    from .io.metrics import timing_path
 
-        outs += [timing_path(p) for p in outs if p.name == "metrics.json"]
-    return outs
+    outs = [Path(p) for p in stages.load(name).outputs(cfg, key)]
+    if stages.FAN_OUT[name] != "dataset":
+        patient, _, sequence = key.partition("/")
+        metrics = PatientPaths(Path(cfg.output_dir), patient).stage_metrics(name, sequence)
+    else:   # the dataset stage (tables) lists its metrics file, the last of its outputs
+        metrics = outs[-1]
+    return [p for p in outs if p != metrics] + [metrics, timing_path(metrics)]
 
 
 def cmd_stage(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@
     ``anatomy/medial_axis.ply``         medial points with radius, polyline edges
     ``anatomy/centreline_graph.json``   navigation tree (branches, parents, generations, radii)
     ``sequence_YYY/metadata/``          trajectory.json, timestamps.json, trajectory_tum.txt
+    ``sequence_index/<sequence>.{render,noise}.json``  sha256 of the frames the depth CNN trains on (DVC dep)
     ``metrics/<stage>.json``            per-stage DVC metrics (accuracy)
     ``metrics/<stage>.timing.json``     its timings (wall/CPU time, throughput, peak RSS; uncached DVC out)
 ``<output_dir>/evaluation/<patient>/<sequence>/``  pose / depth benchmark results (read by `tables`)
@@ -22,6 +23,9 @@ import dataclasses
 from pathlib import Path
 
 from .catalog import DEPTH_FINETUNE_JSON, DEPTH_MODEL, EVALUATION, EvaluationPaths, SequencePaths
+
+#: stages whose metrics file is not named after the stage (``metrics/<name>.json``)
+METRICS_NAMES = {"validate_anatomy": "anatomy_validation", "validate_centreline": "centreline_validation"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,8 +108,19 @@ class PatientPaths:
         return self.anatomy / "mesh_metadata.json"
 
     @property
+    def volume_mesh(self) -> Path:
+        """``anatomy/volume_mesh/``: the optional tetrahedral mesh and its ``info.json`` (mesh stage)."""
+        return self.anatomy / "volume_mesh"
+
+    @property
     def tet_mesh(self) -> Path:
-        return self.anatomy / "lung_model_tet.npz"
+        """``anatomy/volume_mesh/lung_model_tet.npz`` (vertices in metres, tetrahedra), when made."""
+        return self.volume_mesh / "lung_model_tet.npz"
+
+    @property
+    def volume_mesh_info(self) -> Path:
+        """``anatomy/volume_mesh/info.json``: whether the volume mesh was made, and why not."""
+        return self.volume_mesh / "info.json"
 
     @property
     def medial_axis_ply(self) -> Path:
@@ -151,11 +166,28 @@ class PatientPaths:
         return self.root / DEPTH_MODEL
 
     @property
+    def sequence_index(self) -> Path:
+        """``<patient>/sequence_index/``: one record per rendered sequence and stage (:meth:`sequence_record`);
+        train_depth's DVC dep, which stays right whatever ``sequences`` is (scripts/write_dvc_yaml.py)."""
+        return self.root / "sequence_index"
+
+    def sequence_record(self, sequence: str, stage: str) -> Path:
+        """``sequence_index/<sequence>.<stage>.json``: the sha256 of the sequence outputs of ``stage`` (render,
+        noise) that the depth stages read."""
+        return self.sequence_index / f"{sequence}.{stage}.json"
+
+    @property
     def metrics_dir(self) -> Path:
         return self.root / "metrics"
 
     def metrics(self, stage: str) -> Path:
         return self.metrics_dir / f"{stage}.json"
+
+    def stage_metrics(self, stage: str, sequence: str = "") -> Path:
+        """The DVC metrics file of pipeline stage ``stage`` (for ``sequence`` when it fans out over sequences):
+        ``metrics/<stage>[_<sequence>].json``, or the stage's own name in :data:`METRICS_NAMES`."""
+        name = METRICS_NAMES.get(stage, stage)
+        return self.metrics(f"{name}_{sequence}" if sequence else name)
 
     def timings(self, stage: str) -> Path:
         """``metrics/<stage>.timing.json`` (see :mod:`room_pipeline.io.metrics`)."""

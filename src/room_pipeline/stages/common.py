@@ -39,6 +39,13 @@ def file_sha256(path: str | Path) -> str:
     return h.hexdigest()
 
 
+def write_sequence_record(paths: PatientPaths, sequence: str, stage: str, files: dict[str, Path]) -> None:
+    """``sequence_index/<sequence>.<stage>.json`` = {name: sha256 of the file or folder (:func:`file_sha256`), or
+    null when the stage did not write it}: what train_depth's DVC dep sees of this sequence."""
+    write_json(paths.sequence_record(sequence, stage),
+               {k: file_sha256(f) if Path(f).exists() else None for k, f in files.items()})
+
+
 def metadata(stage: str, patient: str, cfg: DictConfig, keys: tuple[str, ...], **extra: Any) -> dict:
     """Common metadata block of every output: what made it, with which config, in which conventions."""
     return {"stage": stage, "patient": patient, "room_pipeline_version": __version__,

@@ -22,7 +22,7 @@ from .common import StageTimer, metadata, patient_paths, write_metrics
 
 def outputs(cfg: DictConfig, patient: str) -> list:
     p = patient_paths(cfg, patient)
-    return [p.mesh, p.collision_mesh, p.mesh_metadata, p.anatomy / "volume_mesh"]
+    return [p.mesh, p.collision_mesh, p.mesh_metadata, p.volume_mesh]
 
 
 def run(cfg: DictConfig, patient: str) -> dict:
@@ -38,7 +38,6 @@ def run(cfg: DictConfig, patient: str) -> dict:
               header=f"room-pipeline collision_model (scope simulation copy of lung_model) of {patient}\n"
                      "normals point from air into tissue")
     write_json(paths.mesh_metadata, meta)
-    vm_dir = paths.anatomy / "volume_mesh"
     if res.tets is not None:
         verts, tets = res.tets
 
@@ -46,11 +45,11 @@ def run(cfg: DictConfig, patient: str) -> dict:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, vertices=np.asarray(verts, np.float64), tetrahedra=np.asarray(tets, np.int64))
 
-        write_with(vm_dir / "lung_model_tet.npz", _save)
-        write_json(vm_dir / "info.json", {"tetrahedralized": True, "n_tetrahedra": int(len(tets)),
+        write_with(paths.tet_mesh, _save)
+        write_json(paths.volume_mesh_info, {"tetrahedralized": True, "n_tetrahedra": int(len(tets)),
                                           "n_vertices": int(len(verts)), "units": "m"})
     else:
-        write_json(vm_dir / "info.json", {"tetrahedralized": False,
+        write_json(paths.volume_mesh_info, {"tetrahedralized": False,
                                           "reason": "mesh.tetrahedralize is false"})
     metrics = {k: v for k, v in res.report.items() if isinstance(v, (int, float, bool))}
     col = res.report.get("collision", {})

@@ -32,7 +32,7 @@ from ..noise.params import (PROJECT_ROOT, NoiseParams, frame_seed, resolve_profi
                              sequence_hash)
 from ..noise.profile import NoiseProfile
 from ..noise.synthesize import add_noise, filter_table
-from .common import StageTimer, file_sha256, metadata, patient_paths, write_metrics
+from .common import StageTimer, file_sha256, metadata, patient_paths, write_metrics, write_sequence_record
 
 IN_FOLDER = FOLDERS["rgb"]
 OUT_FOLDER = FOLDERS[RGB_NOISY]
@@ -48,7 +48,7 @@ def frame_index(path: Path) -> int:
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
     seq = patient_paths(cfg, patient).seq(sequence)
-    return [seq.rgb_noisy, seq.noise_json]
+    return [seq.rgb_noisy, seq.noise_json, patient_paths(cfg, patient).sequence_record(sequence, "noise")]
 
 
 def run(cfg: DictConfig, key: str) -> dict:
@@ -104,5 +104,6 @@ def run(cfg: DictConfig, key: str) -> dict:
                "synthesis_ms_per_frame": round(1e3 * synth_s / len(frames), 3),
                "filter_table_s": round(table_s, 3),
                "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
+    write_sequence_record(paths, sequence, "noise", {RGB_NOISY: out_dir})     # train_depth's dep (render's too)
     write_metrics(paths, f"noise_{sequence}", metrics)
     return metrics

@@ -19,13 +19,14 @@ from ..io.mesh import read_obj
 from ..io.storage import POINT_CLOUD_JSON
 from ..render.params import RenderParams
 from ..render.sequence import execution_params, load_poses, render_sequence, select_frames
-from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
+from .common import StageTimer, metadata, patient_paths, read_json, write_metrics, write_sequence_record
 
 
 def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
     seq = patient_paths(cfg, patient).seq(sequence)
-    return seq.render_folders() + [seq.calibration, seq.render_json]
+    return seq.render_folders() + [seq.calibration, seq.render_json,
+                                   patient_paths(cfg, patient).sequence_record(sequence, "render")]
 
 
 def run(cfg: DictConfig, key: str) -> dict:
@@ -56,5 +57,8 @@ def run(cfg: DictConfig, key: str) -> dict:
         metrics.update(sequence_metrics(sorted(sp.folder("rgb").glob("frame_*.png"))))
         if out.frame_ev is not None:
             metrics["exposure_ev_min"], metrics["exposure_ev_max"] = min(out.frame_ev), max(out.frame_ev)
+    # what train_depth reads of this sequence (its DVC dep: scripts/write_dvc_yaml.py)
+    write_sequence_record(paths, sequence, "render", {m: sp.folder(m) for m in ("rgb", "depth")}
+                          | {"calibration": sp.calibration, "render_json": sp.render_json})
     write_metrics(paths, f"render_{sequence}", metrics)
     return metrics

@@ -51,6 +51,7 @@ def _targets(cfg: DictConfig, key: str) -> tuple[list[str], list[str]]:
 
 
 def outputs(cfg: DictConfig, key: str) -> list:
+    """The tables, then (last) the dataset's DVC metrics file."""
     p = TablesParams.from_dict(_evaluate_section(cfg).get("tables"))
     out = Path(p.output_dir)
     return ([out / f"{t}.{ext}" for t in TABLES for ext in ("md", "tex", "csv")]
