@@ -11,6 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import __version__
 from ..conventions import metadata_block
+from ..io.atomic import write_json
 from ..io.jsondoc import finite as _finite, read_json, round_floats  # noqa: F401 (the stages' names)
 from ..io.metrics import split_timings, write_metrics_file
 from ..paths import PatientPaths
