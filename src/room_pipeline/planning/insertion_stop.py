@@ -8,7 +8,8 @@ The rule a robotics user expects: the insertion ends at the first planned frame 
 
 * the **tip**: the planned camera centre's clearance ``-sdf`` (m) is below ``radius + stop_clearance_mm``, or
 * the **body** (joint plan only): a backbone point of the bending segment (``joint_plan.body_points``, base to
-  camera, only where the route itself is inside the lumen) has ``-sdf`` below ``radius + stop_clearance_mm``,
+  camera; only the part already on the planned path, at route arclength >= the first frame's, where the route
+  itself is inside the lumen) has ``-sdf`` below ``radius + stop_clearance_mm``,
 
 and every frame from there on is dropped.  The note (``trajectory.json`` -> ``insertion_stop``) says which
 frame, why, the clearance there and the frames planned and kept.  With a joint plan the kept frames are
@@ -44,8 +45,11 @@ def blocked(traj, fn: SdfFn, geometry: ScopeGeometry, radius: float, clearance: 
         L = fk(np.column_stack([q[:, 0], q[:, 1], np.zeros(T)])[:, None, :], s_body[None, :], geometry=geometry)
         P = np.einsum("kij,kbj->kbi", F[:, :3, :3], L[:, :, :3, 3]) + F[:, None, :3, 3]
         c = -np.asarray(fn(P.reshape(-1, 3)), float).reshape(T, -1)
-        on_route = route.frames((q[:, 2:3] + s_body[None, :]).ravel())[:, :3, 3]
-        inside = (-np.asarray(fn(on_route), float) > 0.0).reshape(T, -1)   # not above a cut trachea
+        s_route = q[:, 2:3] + s_body[None, :]
+        on_route = route.frames(s_route.ravel())[:, :3, 3]
+        # only the part of the segment already on the planned path (not its straight extension behind the start,
+        # outside the airway the planner knows) and where the route itself is in the lumen
+        inside = (-np.asarray(fn(on_route), float) > 0.0).reshape(T, -1) & (s_route >= float(traj.arclength[0]))
         body = np.where(inside, c, np.inf).min(axis=1)
     bad_tip, bad_body = tip < need, body < need
     bad = bad_tip | bad_body
