@@ -801,7 +801,7 @@ def stop_at_wall(dirs: list[str]) -> None:
     the frames kept and dropped (trajectory.json ``insertion_stop``), the stage's simulated-vs-planned figures
     (simulation.json), and the defaults (raw step, as ``--converged-reference``) against the issue's physical-mass
     1 ms reference and the 0.5 ms run: tip and view p95 / max over all frames and over the frames in contact.
-    Writes benchmarks/results/simulation_stop_at_wall.{json,md}."""
+    Writes benchmarks/results/simulation_stop_at_wall.{json,md} (rows of sequences not in DIR are kept)."""
     rows = []
     radius_mm = 0.5 * SimParams().scope_diameter_mm
     for d in dirs:
@@ -840,7 +840,12 @@ def stop_at_wall(dirs: list[str]) -> None:
             print(json.dumps(rows[-1]), flush=True)
     res = ROOT / "benchmarks" / "results"
     res.mkdir(parents=True, exist_ok=True)
-    (res / "simulation_stop_at_wall.json").write_text(json.dumps({"rows": rows, "dirs": dirs}, indent=1))
+    old = res / "simulation_stop_at_wall.json"          # rows of other sequences (an earlier DIR) are kept
+    done = {r["sequence"] for r in rows}
+    rows = sorted([r for r in (json.loads(old.read_text())["rows"] if old.exists() else []) if r["sequence"] not in done]
+                  + rows, key=lambda r: r["sequence"])
+    dirs = sorted({r["dir"] for r in rows})
+    old.write_text(json.dumps({"rows": rows, "dirs": dirs}, indent=1))
     f2 = lambda x, k, f=".2f": "-" if x is None else format(x[k], f)
     md = ["# Issue #17 with trajectory.stop_at_wall=true (benchmarks/simulation.py --stop-at-wall)", "",
           "The insertion ends before the first frame whose planned camera or bending-segment backbone is closer to the "
@@ -862,10 +867,10 @@ def stop_at_wall(dirs: list[str]) -> None:
                                              f"{st['reason']}, {st['clearance_mm']:.2f})")
         a, c = r["defaults_vs_1ms"], r["defaults_vs_1ms_in_contact"]
         md.append(f"| {r['sequence']} | {stop} | {r['plan_frames_narrow']} | {r['frames_in_contact_defaults_or_1ms']} / "
-                  f"{r['frames']} | {f2(a, 'tip_mm_p95', '.3f')} / {f2(a, 'tip_mm_max', '.3f')} | {f2(a, 'view_deg_p95')} / "
-                  f"{f2(a, 'view_deg_max')} | {f2(c, 'tip_mm_p95', '.3f')} / {f2(c, 'view_deg_p95')} | "
-                  f"{f2(r['defaults_vs_0p5ms'], 'tip_mm_p95', '.3f')} / {f2(r['defaults_vs_0p5ms'], 'view_deg_p95')} | "
-                  f"{f2(r['1ms_vs_0p5ms'], 'tip_mm_p95', '.3f')} / {f2(r['1ms_vs_0p5ms'], 'view_deg_p95')} | "
+                  f"{r['frames']} | {f2(a, 'tip_mm_p95', '.3f')} / {f2(a, 'tip_mm_max', '.3f')} | {f2(a, 'view_deg_p95', '.3f')} / "
+                  f"{f2(a, 'view_deg_max', '.3f')} | {f2(c, 'tip_mm_p95', '.3f')} / {f2(c, 'view_deg_p95', '.3f')} | "
+                  f"{f2(r['defaults_vs_0p5ms'], 'tip_mm_p95', '.3f')} / {f2(r['defaults_vs_0p5ms'], 'view_deg_p95', '.3f')} | "
+                  f"{f2(r['1ms_vs_0p5ms'], 'tip_mm_p95', '.3f')} / {f2(r['1ms_vs_0p5ms'], 'view_deg_p95', '.3f')} | "
                   f"{r['tracking_error_mm']['median']:.2f} / {r['tracking_error_mm']['max']:.2f}, "
                   f"{r['tracking_error_deg']['median']:.2f} | {r['camera_roll_straight_stretch_max_deg']:.3f} | "
                   f"{r['contact_force_n_max']:.3f} | {r['realtime_factor_cpu_defaults']:.1f} |")
