@@ -11,6 +11,7 @@
     .venv/bin/python benchmarks/simulation.py --friction-chatter
     .venv/bin/python benchmarks/simulation.py --plan-clearance OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --stop-at-wall OUTPUT_DIR [OUTPUT_DIR ...]
+    .venv/bin/python benchmarks/simulation.py --stop-at-wall-md
 
 (The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
 after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
@@ -846,6 +847,14 @@ def stop_at_wall(dirs: list[str]) -> None:
                   + rows, key=lambda r: r["sequence"])
     dirs = sorted({r["dir"] for r in rows})
     old.write_text(json.dumps({"rows": rows, "dirs": dirs}, indent=1))
+    stop_at_wall_markdown(rows, dirs)
+
+
+def stop_at_wall_markdown(rows: list[dict], dirs: list[str]) -> None:
+    """benchmarks/results/simulation_stop_at_wall.md from the rows of :func:`stop_at_wall` (``--stop-at-wall-md``:
+    from the .json)."""
+    res = ROOT / "benchmarks" / "results"
+    radius_mm = 0.5 * SimParams().scope_diameter_mm
     f2 = lambda x, k, f=".2f": "-" if x is None else format(x[k], f)
     md = ["# Issue #17 with trajectory.stop_at_wall=true (benchmarks/simulation.py --stop-at-wall)", "",
           "The insertion ends before the first frame whose planned camera or bending-segment backbone is closer to the "
@@ -880,6 +889,10 @@ def stop_at_wall(dirs: list[str]) -> None:
 
 def main() -> None:
     quick = "--quick" in sys.argv
+    if "--stop-at-wall-md" in sys.argv:            # rewrite the .md from the .json
+        doc = json.loads((ROOT / "benchmarks" / "results" / "simulation_stop_at_wall.json").read_text())
+        stop_at_wall_markdown(doc["rows"], doc["dirs"])
+        return
     if "--stop-at-wall" in sys.argv:
         i = sys.argv.index("--stop-at-wall")
         stop_at_wall([a for a in sys.argv[i + 1:] if not a.startswith("--")])
