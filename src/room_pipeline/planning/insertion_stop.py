@@ -65,7 +65,8 @@ def blocked(traj, fn: SdfFn, geometry: ScopeGeometry, radius: float, clearance: 
                "description": "the insertion ends before this frame: the plan's " + (
                    "camera centre" if reason == "tip_clearance" else "bending-segment backbone") +
                " is closer to the wall than the scope's radius + stop_clearance_mm (trajectory.stop_at_wall); "
-               "frames from frame_index on are dropped"}
+               "frame_index, reason, clearance_mm and arclength_mm are the first plan's; frames_kept: after the kept "
+               "frames were planned again (joint_replans) and checked again, at most frame_index"}
 
 
 _PER_FRAME = ("timestamps", "poses", "arclength", "branch_id", "clearance", "curvature", "speed", "margin",
