@@ -10,6 +10,8 @@
     .venv/bin/python benchmarks/simulation.py --contact-candidates-md
     .venv/bin/python benchmarks/simulation.py --friction-chatter
     .venv/bin/python benchmarks/simulation.py --plan-clearance OUTPUT_DIR [OUTPUT_DIR ...]
+    .venv/bin/python benchmarks/simulation.py --stop-at-wall OUTPUT_DIR [OUTPUT_DIR ...]
+    .venv/bin/python benchmarks/simulation.py --stop-at-wall-md
 
 (The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
 after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
@@ -794,8 +796,107 @@ def plan_tracking(dirs: list[str]) -> None:
     print("\n".join(md))
 
 
+def stop_at_wall(dirs: list[str]) -> None:
+    """Issue #17 with ``trajectory.stop_at_wall=true`` (planning/insertion_stop.py): on each DIR/patient_*/sequence_000
+    planned and simulated with the switch on (``room stage trajectory|simulate ... trajectory.stop_at_wall=true``),
+    the frames kept and dropped (trajectory.json ``insertion_stop``), the stage's simulated-vs-planned figures
+    (simulation.json), and the defaults (raw step, as ``--converged-reference``) against the issue's physical-mass
+    1 ms reference and the 0.5 ms run: tip and view p95 / max over all frames and over the frames in contact.
+    Writes benchmarks/results/simulation_stop_at_wall.{json,md} (rows of sequences not in DIR are kept)."""
+    rows = []
+    radius_mm = 0.5 * SimParams().scope_diameter_mm
+    for d in dirs:
+        for root in sorted(Path(d).glob("patient_*")):
+            meta = root / "sequence_000" / "metadata"
+            if not (meta / "simulation.json").exists():
+                continue
+            tj = json.loads((meta / "trajectory.json").read_text())
+            rep = json.loads((meta / "simulation.json").read_text())["report"]
+            traj, mesh = _load_sequence(root)
+            runs, cpu = {}, {}
+            for name, kw in (("defaults", {}), ("1 ms", PHYS_REF), ("0.5 ms", CONVERGED_REF)):
+                c0 = time.process_time()
+                runs[name] = simulate(traj, mesh, SimParams(**{**kw, "max_step_halvings": 0}), G)
+                cpu[name] = time.process_time() - c0
+            inc = (runs["defaults"].contact_force_n > 0) | (runs["1 ms"].contact_force_n > 0)
+            clear = np.array([f["clearance"] for f in tj["frames"]]) / MM
+
+            def vs(a, b, m=None):
+                ta, tb = runs[a].tip_poses, runs[b].tip_poses
+                return _vs(ta if m is None else ta[m], tb if m is None else tb[m]) if m is None or m.any() else None
+
+            rows.append({"sequence": f"{root.name}/sequence_000", "dir": d, "insertion_stop": tj.get("insertion_stop"),
+                         "frames": int(len(traj.timestamps)), "duration_s": float(traj.timestamps[-1]),
+                         "plan_frames_narrow": int((clear < radius_mm).sum()), "plan_camera_clearance_min_mm": float(clear.min()),
+                         "frames_in_contact_defaults_or_1ms": int(inc.sum()),
+                         "frames_in_contact_stage": rep["contact_force_n"].get("frames_in_contact"),
+                         "defaults_vs_1ms": vs("defaults", "1 ms"), "defaults_vs_1ms_in_contact": vs("defaults", "1 ms", inc),
+                         "defaults_vs_0p5ms": vs("defaults", "0.5 ms"), "1ms_vs_0p5ms": vs("1 ms", "0.5 ms"),
+                         "cpu_time_s": cpu, "realtime_factor_cpu_defaults": float(traj.timestamps[-1]) / cpu["defaults"],
+                         "loadavg": os.getloadavg()[0],
+                         "tracking_error_mm": rep["tracking_error_mm"], "tracking_error_deg": rep["tracking_error_deg"],
+                         "camera_roll_straight_stretch_max_deg": rep["camera_roll_deg"]["straight_stretch_change_max"],
+                         "contact_force_n_max": rep["contact_force_n"]["max"],
+                         "command_stage": rep.get("command")})
+            print(json.dumps(rows[-1]), flush=True)
+    res = ROOT / "benchmarks" / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    old = res / "simulation_stop_at_wall.json"          # rows of other sequences (an earlier DIR) are kept
+    done = {r["sequence"] for r in rows}
+    rows = sorted([r for r in (json.loads(old.read_text())["rows"] if old.exists() else []) if r["sequence"] not in done]
+                  + rows, key=lambda r: r["sequence"])
+    dirs = sorted({r["dir"] for r in rows})
+    old.write_text(json.dumps({"rows": rows, "dirs": dirs}, indent=1))
+    stop_at_wall_markdown(rows, dirs)
+
+
+def stop_at_wall_markdown(rows: list[dict], dirs: list[str]) -> None:
+    """benchmarks/results/simulation_stop_at_wall.md from the rows of :func:`stop_at_wall` (``--stop-at-wall-md``:
+    from the .json)."""
+    res = ROOT / "benchmarks" / "results"
+    radius_mm = 0.5 * SimParams().scope_diameter_mm
+    f2 = lambda x, k, f=".2f": "-" if x is None else format(x[k], f)
+    md = ["# Issue #17 with trajectory.stop_at_wall=true (benchmarks/simulation.py --stop-at-wall)", "",
+          "The insertion ends before the first frame whose planned camera or bending-segment backbone is closer to the "
+          f"wall than the scope's radius ({radius_mm:g} mm; planning/insertion_stop.py).  DIR: `room run --patient P "
+          "--until trajectory output_dir=DIR`, then `room stage trajectory --patient P/sequence_000 output_dir=DIR "
+          "trajectory.stop_at_wall=true` and `room stage simulate` (same arguments).  Defaults (raw step, no halving) "
+          "against the issue's physical-mass 1 ms reference (bounds p95 0.2 mm, 1 deg) and the 0.5 ms run; in contact = "
+          "frames where the defaults or the 1 ms run touch the wall.  Simulated vs planned: the stage's simulation.json "
+          "(bounds median 1.0 / max 2.5 mm, view median 2 deg, straight-stretch roll 1 deg).  CPU time on 2 shared cores.  "
+          "Command: `python benchmarks/simulation.py --stop-at-wall " + " ".join(dirs) + "`", "",
+          "| sequence | frames kept / planned (stop: frame, reason, clearance mm) | plan frames narrower than the radius | "
+          "frames in contact | defaults vs 1 ms: tip p95 / max mm | view p95 / max deg | in contact: tip p95 mm / view p95 deg | "
+          "defaults vs 0.5 ms: tip p95 mm / view p95 deg | 1 ms vs 0.5 ms: tip p95 mm / view p95 deg | "
+          "sim vs plan: median / max mm, view median deg | straight-stretch roll deg | contact max N | realtime x (CPU) |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        st = r["insertion_stop"]
+        stop = "not stopped" if not st else (f"{st['frames_kept']} / {st['frames_planned']} ({st['frame_index']}, "
+                                             f"{st['reason']}, {st['clearance_mm']:.2f})")
+        a, c = r["defaults_vs_1ms"], r["defaults_vs_1ms_in_contact"]
+        md.append(f"| {r['sequence']} | {stop} | {r['plan_frames_narrow']} | {r['frames_in_contact_defaults_or_1ms']} / "
+                  f"{r['frames']} | {f2(a, 'tip_mm_p95', '.3f')} / {f2(a, 'tip_mm_max', '.3f')} | {f2(a, 'view_deg_p95', '.3f')} / "
+                  f"{f2(a, 'view_deg_max', '.3f')} | {f2(c, 'tip_mm_p95', '.3f')} / {f2(c, 'view_deg_p95', '.3f')} | "
+                  f"{f2(r['defaults_vs_0p5ms'], 'tip_mm_p95', '.3f')} / {f2(r['defaults_vs_0p5ms'], 'view_deg_p95', '.3f')} | "
+                  f"{f2(r['1ms_vs_0p5ms'], 'tip_mm_p95', '.3f')} / {f2(r['1ms_vs_0p5ms'], 'view_deg_p95', '.3f')} | "
+                  f"{r['tracking_error_mm']['median']:.2f} / {r['tracking_error_mm']['max']:.2f}, "
+                  f"{r['tracking_error_deg']['median']:.2f} | {r['camera_roll_straight_stretch_max_deg']:.3f} | "
+                  f"{r['contact_force_n_max']:.3f} | {r['realtime_factor_cpu_defaults']:.1f} |")
+    (res / "simulation_stop_at_wall.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
 def main() -> None:
     quick = "--quick" in sys.argv
+    if "--stop-at-wall-md" in sys.argv:            # rewrite the .md from the .json
+        doc = json.loads((ROOT / "benchmarks" / "results" / "simulation_stop_at_wall.json").read_text())
+        stop_at_wall_markdown(doc["rows"], doc["dirs"])
+        return
+    if "--stop-at-wall" in sys.argv:
+        i = sys.argv.index("--stop-at-wall")
+        stop_at_wall([a for a in sys.argv[i + 1:] if not a.startswith("--")])
+        return
     if "--reference-contact" in sys.argv:
         i = sys.argv.index("--reference-contact")
         reference_in_contact([a for a in sys.argv[i + 1:] if not a.startswith("--")])

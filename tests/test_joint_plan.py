@@ -249,3 +249,35 @@ def test_joint_plan_enabled_false_keeps_the_path_poses_and_still_checks_the_sect
         TrajectoryParams(joint_plan={"enabled": False, "nope": 1.0})
     with pytest.raises(ConfigError, match="enabled must be true or false"):
         TrajectoryParams(joint_plan={"enabled": "yes"})
+
+
+def test_stop_at_wall_sees_the_body_not_only_the_tip():
+    """insertion_stop.blocked checks the bending segment's backbone: a lumen whose axis is offset toward the
+    bent tip keeps the camera 2.4 mm + its lateral offset from the wall but the segment's base 2.4 mm: the
+    body, not the tip, is closer than the scope's radius (2.5 mm), once the base is on the path."""
+    import types
+
+    from room_pipeline.planning.insertion_stop import blocked
+    tr = straight_trajectory([0.0, 0.0, 0.0], [0.0, 0.0, -1.0], 0.1, 5e-3)
+    route = Route(tr.poses[:, :3, 3], tr.arclength, tr.poses[:, :3, :3])
+    T = len(tr.timestamps)
+    q = np.column_stack([np.full(T, 0.03 * G.q1_max), np.zeros(T), tr.arclength - G.l])
+    poses = camera_poses(route, q, G)
+    lateral = poses[:, :2, 3] - tr.poses[:, :2, 3]                       # the bent tip's offset from the axis
+    delta = float(np.linalg.norm(lateral[0]))
+    assert delta > 0.5 * MM
+    c = lateral[0]
+
+    def fn(p):
+        p = np.atleast_2d(p)
+        return np.linalg.norm(p[:, :2] - c, axis=1) - (delta + 2.4 * MM)
+
+    traj = types.SimpleNamespace(poses=poses, joints=q, path_poses=tr.poses, arclength=tr.arclength)
+    k, note = blocked(traj, fn, G, 2.5 * MM, 0.0, 11)
+    assert note["reason"] == "body_clearance" and 2.4 <= note["clearance_mm"] < 2.5
+    # the segment behind the route's start (straight extension, outside the planned airway) is not checked: the
+    # stop comes when a backbone point near the base (within 0.25 l, lateral offset < 0.1 mm) is on the path
+    assert 0.7 * G.l < tr.arclength[k] < 0.9 * G.l
+    assert np.all(-fn(poses[:, :3, 3]) > 2.5 * MM)                       # the tip alone would pass
+    traj.joints = None                                                   # without joints only the tip is checked
+    assert blocked(traj, fn, G, 2.5 * MM, 0.0, 11)[0] is None

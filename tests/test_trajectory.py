@@ -449,3 +449,91 @@ def test_start_direction_is_the_first_stretch_not_a_hooked_first_point():
     check_trajectory(tr, lambda p: tree.sdf(p)[0])
     view = tr.poses[0][:3, 2]
     assert view[2] < -0.9                              # looking down the trachea from the first frame
+
+
+# --------------------------------------------------------------------------- trajectory.stop_at_wall
+
+
+def narrowing_tube():
+    """A straight route (trachea z 0.06 -> 0, then 0.1 m on along -z) whose lumen is a cone: radius
+    6 mm at the start falling 0.025 mm per mm of depth (2.5 mm at 140 mm, 2 mm at the end).  Exact SDF (m)."""
+    tree = AirwayTree([Branch(0, -1, 0, np.array([0.0, 0.0, 0.06]), np.zeros(3), 8e-3),
+                       Branch(1, 0, 1, np.zeros(3), np.array([0.0, 0.0, -0.1]), 6e-3)])
+
+    def fn(p):
+        p = np.atleast_2d(p)
+        r = (6.0 - 0.025 * np.clip((0.06 - p[:, 2]) / MM, 0.0, None)) * MM
+        return (np.hypot(p[:, 0], p[:, 1]) - r) / np.sqrt(1.0 + 0.025 ** 2)
+
+    return from_airway_tree(tree, 1e-3), fn
+
+
+CONE = dict(targets="leaves", max_generation=None, start_offset_mm=0.0, min_lumen_radius_mm=0.0)
+
+
+def _plan_doc(tr) -> str:
+    d = tr.to_dict()
+    return json.dumps({k: d[k] for k in ("frames", "joint_plan", "target")})
+
+
+@pytest.mark.parametrize("joint_plan", [None, {}])
+def test_stop_at_wall_ends_the_insertion_where_the_tip_no_longer_fits(joint_plan):
+    """stop_at_wall: the insertion ends before the first frame whose camera is closer to the wall than the
+    scope's radius (2.5 mm): in the narrowing tube, where the off plan's clearance first drops below 2.5 mm
+    (140 mm in); every kept frame keeps 2.5 mm; trajectory.json says where, why and how close."""
+    graph, fn = narrowing_tube()
+    leaf = graph.leaves()[0].id
+    full = plan_path(graph, leaf, fn, TrajectoryParams(joint_plan=joint_plan, **CONE))
+    first = int(np.argmax(full.clearance < 2.5 * MM))
+    assert 0 < first < len(full.timestamps) - 1
+    assert abs(full.arclength[first] / MM - 140.0) < 1.0             # the cone's 2.5 mm section
+    tr = plan_path(graph, leaf, fn, TrajectoryParams(joint_plan=joint_plan, stop_at_wall=True, **CONE))
+    assert len(tr.timestamps) == first
+    assert np.all(tr.clearance >= 2.5 * MM) and np.all(-fn(tr.positions) >= 2.5 * MM)
+    for name in ("arclength", "branch_id", "curvature", "speed", "margin"):
+        assert len(getattr(tr, name)) == first
+    if joint_plan is not None:
+        assert tr.joints.shape == (first, 3) and tr.path_poses.shape == (first, 4, 4)
+    note = tr.insertion_stop
+    assert note["frame_index"] == first and note["frames_kept"] == first
+    assert note["frames_planned"] == len(full.timestamps) and note["reason"] == "tip_clearance"
+    assert note["clearance_mm"] < note["required_mm"] == 2.5
+    assert not tr.target.reached and tr.target.stop_reason == "scope_clearance"
+    assert "stop_at_wall" in tr.target.note
+    doc = json.loads(json.dumps(tr.to_dict()))
+    assert doc["insertion_stop"]["frame_index"] == first and len(doc["frames"]) == first
+    assert doc["target"]["reached"] is False
+    # a clearance on top of the radius stops earlier: at the 3.0 mm section (120 mm in)
+    tr2 = plan_path(graph, leaf, fn, TrajectoryParams(joint_plan=joint_plan, stop_at_wall=True,
+                                                     stop_clearance_mm=0.5, **CONE))
+    assert abs(tr2.arclength[-1] / MM - 120.0) < 1.0 and np.all(tr2.clearance >= 3.0 * MM)
+
+
+#: sha256 of the narrowing tube's plan (frames, joint_plan, target of trajectory.json) before stop_at_wall
+#: existed (commit e97a839), centreline plan / joint plan: the switch off changes no byte of the plan
+PLAN_BEFORE_STOP_AT_WALL = {None: "5dc7bccc3965fd816b34d60e0291feb27c2f6bd2de7fc3cacb49e3e680d6ac3c",
+                            "joint": "b30aecbe574ce90a598ff5d34546a574b45275114337ccfcabf6c3d729483bc7"}
+
+
+@pytest.mark.parametrize("joint_plan", [None, "joint"])
+def test_stop_at_wall_off_is_the_plan_of_before(joint_plan):
+    """Off (the default): the plan runs to the route's end, byte for byte the plan made before the switch
+    existed, and trajectory.json has no insertion_stop."""
+    import hashlib
+    graph, fn = narrowing_tube()
+    tr = plan_path(graph, graph.leaves()[0].id, fn,
+                   TrajectoryParams(joint_plan=None if joint_plan is None else {}, **CONE))
+    assert _TrajectoryParams().stop_at_wall is False
+    assert tr.insertion_stop is None and "insertion_stop" not in tr.to_dict()
+    assert tr.clearance.min() < 2.5 * MM                                # it does ask the tip into the wall
+    assert hashlib.sha256(_plan_doc(tr).encode()).hexdigest() == PLAN_BEFORE_STOP_AT_WALL[joint_plan]
+
+
+def test_stop_at_wall_config_errors_and_no_room_at_the_start():
+    with pytest.raises(ConfigError, match="stop_at_wall"):
+        TrajectoryParams(stop_at_wall="yes")
+    with pytest.raises(ConfigError, match="stop_clearance_mm"):
+        TrajectoryParams(stop_clearance_mm=-1.0)
+    graph, fn = narrowing_tube()
+    with pytest.raises(InputError, match="does not fit from the start"):       # 6 mm lumen, 4 + 2.5 needed
+        plan_path(graph, graph.leaves()[0].id, fn, TrajectoryParams(stop_at_wall=True, stop_clearance_mm=4.0, **CONE))

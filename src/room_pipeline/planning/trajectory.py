@@ -70,6 +70,10 @@ Pipeline of :func:`plan_path`
        limits, the scope body kept in the lumen), so the simulator
        can execute the plan; ``joint_plan`` in ``trajectory.json`` says how far it departs from
        the path.  ``clearance`` is then measured at those camera positions.
+    8. **Where the insertion ends** (``stop_at_wall``, off by default): the sequence stops before the
+       first frame whose camera (or, with a joint plan, bending-segment backbone) is closer to the wall
+       than the scope's radius + ``stop_clearance_mm`` (:mod:`.insertion_stop`); the kept frames are
+       planned again in joint space; ``trajectory.json`` -> ``insertion_stop`` says where and why.
 
 Poses are 4x4 camera-to-world in the OpenCV camera frame (x right, y down, z
 forward), world RAS+ metres, as in :mod:`room_pipeline.conventions`.
@@ -281,8 +285,59 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
     info.stop_distance = float(np.linalg.norm(traj.positions[-1] - info.requested))
     traj.target = info
     traj.start = start_doc
+    aims = traj.poses.copy()
     if params.joint_plan is not None:
         _plan_in_joint_space(traj, fn, params, geometry or DEFAULT_GEOMETRY)
+    if params.stop_at_wall:
+        traj = _stop_at_wall(traj, aims, fn, params, geometry or DEFAULT_GEOMETRY)
+    return traj
+
+
+#: re-plans of the kept frames (joint plan) before the last check's frames are simply cut
+_STOP_REPLANS = 3
+
+
+def _stop_at_wall(traj: Trajectory, aims: np.ndarray, fn: SdfFn, params: TrajectoryParams,
+                  geometry: ScopeGeometry) -> Trajectory:
+    """Step 8 (``stop_at_wall``): end the insertion before the first frame whose tip or body is closer to the
+    wall than the scope's radius + ``stop_clearance_mm`` (:mod:`.insertion_stop`); ``aims``: the path poses
+    the joint plan aimed at (re-planned on the kept frames)."""
+    from .insertion_stop import blocked, truncate
+    from .joint_plan import JointPlanParams
+
+    jp = JointPlanParams.from_dict(params.joint_plan or {})
+    radius, extra = 0.5 * jp.scope_diameter_mm * MM, params.stop_clearance_mm * MM
+    planned, note, replans = len(traj.timestamps), None, 0
+    while True:
+        k, found = blocked(traj, fn, geometry, radius, extra, jp.body_points)
+        if k is None:
+            break
+        note = note or found
+        if k < 2:
+            raise InputError(f"target branch {traj.target.branch_id}: trajectory.stop_at_wall: the scope does not "
+                             f"fit from the start ({found['reason']} {found['clearance_mm']:.2f} mm < "
+                             f"{found['required_mm']:.2f} mm at frame {k})")
+        cut = truncate(traj, k)
+        if params.joint_plan is not None and replans < _STOP_REPLANS:
+            replans += 1
+            cut.poses = aims[:k].copy()
+            _plan_in_joint_space(cut, fn, params, geometry)
+        traj = cut
+    if note is None:
+        return traj
+    kept = len(traj.timestamps)
+    note.update(frames_planned=planned, frames_kept=kept, joint_replans=replans,
+                last_kept_tip_clearance_mm=float(traj.clearance[-1] / MM))
+    info = traj.target
+    info.reached = False
+    info.note = (f"insertion stopped at frame {kept} of {planned} (trajectory.stop_at_wall): {note['reason']} "
+                 f"{note['clearance_mm']:.2f} mm < scope radius + stop_clearance_mm {note['required_mm']:.2f} mm "
+                 f"at frame {note['frame_index']}") + ("; " + info.note if info.note else "")
+    info.stop_reason = "scope_clearance"
+    info.point = traj.positions[-1].copy()
+    info.branch_id = int(traj.branch_id[-1])
+    info.stop_distance = float(np.linalg.norm(traj.positions[-1] - info.requested))
+    traj.insertion_stop = note
     return traj
 
 

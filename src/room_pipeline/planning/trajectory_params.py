@@ -54,6 +54,9 @@ class TrajectoryParams:
     jitter_seed: int = 0
     joint_plan: Any = None               # null: camera poses on the path | mapping (JointPlanParams keys): the
                                          # poses are the forward kinematics of a joint-space plan (planning/joint_plan.py)
+    stop_at_wall: bool = False           # the insertion ends before the first frame whose tip or body is closer to the
+                                         # wall than the scope's radius + stop_clearance_mm (planning/insertion_stop.py)
+    stop_clearance_mm: float = 0.0       # stop_at_wall: the scope's surface keeps this from the wall, mm
 
     def __post_init__(self) -> None:
         def num(name: str, integer: bool = False, optional: bool = False):
@@ -76,7 +79,8 @@ class TrajectoryParams:
         for name in ("target_tolerance_mm", "start_offset_mm", "min_lumen_radius_mm", "curvature_safety", "clearance_fraction",
                      "clearance_min_mm", "clearance_max_fraction", "smoothing_step_mm", "centring_weight",
                      "nearest_backoff_mm", "rate_hz", "speed_mm_s", "bifurcation_slowdown",
-                     "bifurcation_distance_mm", "curvature_slowdown", "view_jitter_deg", "view_jitter_time_s"):
+                     "bifurcation_distance_mm", "curvature_slowdown", "view_jitter_deg", "view_jitter_time_s",
+                     "stop_clearance_mm"):
             num(name)
         for name, choices in (("targets", TARGET_MODES), ("unreachable", UNREACHABLE_MODES), ("image_up", IMAGE_UP)):
             if getattr(self, name) not in choices:
@@ -88,7 +92,7 @@ class TrajectoryParams:
                 raise ConfigError(f"trajectory.{name} must be > 0, got {getattr(self, name)}")
         nonneg = ("target_tolerance_mm", "start_offset_mm", "min_lumen_radius_mm", "clearance_fraction", "clearance_min_mm",
                   "centring_weight", "bifurcation_distance_mm", "view_jitter_deg", "relax_iterations",
-                  "max_generation")
+                  "max_generation", "stop_clearance_mm")
         for name in nonneg:
             v = getattr(self, name)
             if v is not None and v < 0:
@@ -100,6 +104,8 @@ class TrajectoryParams:
             raise ConfigError(f"trajectory.clearance_max_fraction must be in [0, 1), got {self.clearance_max_fraction}")
         if self.kappa_max is not None and self.kappa_max <= 0:
             raise ConfigError(f"trajectory.kappa_max must be > 0 (1/m) or null, got {self.kappa_max}")
+        if not isinstance(self.stop_at_wall, bool):
+            raise ConfigError(f"trajectory.stop_at_wall must be true or false, got {self.stop_at_wall!r}")
         if self.targets == "points" and self.points is None:
             raise ConfigError("trajectory.points is required when trajectory.targets is 'points'")
         if self.joint_plan is not None:

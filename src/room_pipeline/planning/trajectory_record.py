@@ -50,6 +50,7 @@ class Trajectory:
     path_poses: np.ndarray | None = None     # (T, 4, 4) the smoothed path's poses (rotation-minimising, no jitter)
     joints: np.ndarray | None = None         # (T, 3) joint plan [q1 m, q2 rad, q3 m] (joint_plan on)
     joint_plan: dict | None = None           # its report (planning/joint_plan.py)
+    insertion_stop: dict | None = None       # where the insertion ended (trajectory.stop_at_wall; planning/insertion_stop.py)
 
     @property
     def positions(self) -> np.ndarray:
@@ -93,6 +94,7 @@ class Trajectory:
                               "; that is path_pose: pose is the forward kinematics of the joint plan q aimed at it "
                               "(joint_plan)"),
             "joint_plan": self.joint_plan,
+            **({} if self.insertion_stop is None else {"insertion_stop": self.insertion_stop}),
             "rate_hz": float(self.rate_hz),
             "target": self.target.to_dict(),
             "start": self.start,
