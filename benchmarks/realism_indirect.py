@@ -12,10 +12,13 @@ builds it: default conf/render, lens distortion off, views trachea / bifurcation
 route).
 
 **Same mesh on both sides**: Cycles and the ray caster render the render stage's mesh itself, with the
-same area-weighted smooth vertex normals (given to Blender as custom normals) and the appearance baked at
-its vertices (the ray caster with ``per_pixel_texture`` off reads the same bake), so the score measures the
-light transport only.  The product's default RGB (per-pixel appearance) is scored too: it differs from the
-reference by its texture detail as well.
+same area-weighted smooth vertex normals (given to Blender as custom normals).  Two appearances: the
+appearance baked at the vertices on both sides (Cycles ``texture='vertex'``, the ray caster with
+``per_pixel_texture`` off), so the score measures the light transport only; and the product's default RGB
+(the appearance function evaluated per pixel) against Cycles evaluating the same function at every
+shading point (``texture='per_point'``: the OSL shader of render/texture_osl.py), the product's own
+appearance as the reference.  ``--tiles`` scores both (and the product against the vertex-bake reference,
+as before the OSL shader existed).
 
 References: Cycles, no adaptive sampling, no denoiser, ``--ref-bounces`` (8) bounces, shadow rays on (the
 physical light; the product's Cycles preset skips them), no sample clamp and no Filter Glossy (Blender's
@@ -66,13 +69,13 @@ def one_view(scene, i: int, ev: float | None = None):
 
 
 def cycles_linear(sc, normals, spp: int, bounces: int, seed: int, threads: int, shadows: bool = True,
-                  denoise: bool = False, border=None) -> tuple[np.ndarray, float]:
+                  denoise: bool = False, border=None, texture: str = "vertex") -> tuple[np.ndarray, float]:
     """Raw linear radiance (exposure 0) of a one-pose scene from Cycles, and its CPU seconds."""
     from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
 
     st = CyclesSettings(samples=spp, adaptive_threshold=0.0, denoise=denoise, seed=seed, exposure=0.0,
                         max_bounces=bounces, threads=threads, cast_shadows=shadows, clamp_indirect=0.0,
-                        filter_glossy=0.0)
+                        filter_glossy=0.0, texture=texture)
     with CyclesRenderer(sc, st, vertex_normals=normals) as r:
         if border is not None:
             set_border(r, border)
@@ -101,24 +104,26 @@ def key_of(sc, *parts) -> str:
     return h.hexdigest()[:16]
 
 
-def reference(sc, normals, name: str, args, bounces: int, spp: int, border=None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Two cached halves (linear, exposure 0) of a Cycles reference."""
+def reference(sc, normals, name: str, args, bounces: int, spp: int, border=None,
+              texture: str = "vertex") -> tuple[np.ndarray, np.ndarray, dict]:
+    """Two cached halves (linear, exposure 0) of a Cycles reference (``texture``: CyclesSettings.texture)."""
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
-    k = key_of(sc, spp, bounces, border, "shadows", "unclamped")
+    parts = (spp, bounces, border, "shadows", "unclamped") + (() if texture == "vertex" else (texture,))
+    k = key_of(sc, *parts)
     halves, cpu = [], []
     for seed in (1000, 1001):
         p = cache / f"{name}_{k}_{seed}.npy"
         if p.exists():
             halves.append(np.load(p))
             continue
-        img, c = cycles_linear(sc, normals, spp // 2, bounces, seed, args.threads, border=border)
+        img, c = cycles_linear(sc, normals, spp // 2, bounces, seed, args.threads, border=border, texture=texture)
         np.save(str(p) + ".tmp.npy", img)
         os.replace(str(p) + ".tmp.npy", p)
         halves.append(img)
         cpu.append(c)
         print(f"  reference {name} half {seed}: {c:.0f} CPU s", flush=True)
-    return halves[0], halves[1], {"spp": spp, "bounces": bounces, "cpu_s_halves": cpu}
+    return halves[0], halves[1], {"spp": spp, "bounces": bounces, "cpu_s_halves": cpu, "texture": texture}
 
 
 def metered_ev(lin: np.ndarray, film, mask=None) -> float:
@@ -169,11 +174,19 @@ def main() -> None:
     ap.add_argument("--grid-tiles", type=int, default=0, help="with --tiles: an N x N grid of tiles covering "
                     "each frame uniformly (tile centres at (k + 0.5) res / N) instead of the centre and one near-wall "
                     "tile; results realism_indirect_grid.{json,md}")
+    ap.add_argument("--ref-textures", default="vertex,per_point",
+                    help="with --tiles: the Cycles references to render, comma-separated: 'vertex' (the vertex bake: "
+                    "light transport alone) and/or 'per_point' (the appearance function per shading point, OSL)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
                     help="a render parameter over conf/render for every scene, e.g. --set 'base_color=[0.7,0.5,0.5]'")
     ap.add_argument("--speed", action="store_true", help="CPU s per frame of the default RGB with and without "
                     "the indirect light, at --res (600 for the headline), each view")
     args = ap.parse_args()
+    tex = [t for t in args.ref_textures.split(",") if t]
+    if not tex or any(t not in ("vertex", "per_point") for t in tex):
+        print(f"realism_indirect: --ref-textures takes vertex and/or per_point, got {args.ref_textures!r}",
+              file=sys.stderr)
+        sys.exit(2)
     import bpy  # noqa: F401
 
     from cycles_reference import build_scene, pick_views, render_params
@@ -251,12 +264,20 @@ def grid_boxes(res: int, t: int, n: int) -> list[tuple[int, int, int, int]]:
     return [(x, x + t, y, y + t) for y in cs for x in cs]
 
 
+LABEL_VERTEX = "ray caster + indirect, vertex albedo; Cycles: vertex albedo (light transport alone)"
+LABEL_PRODUCT = "the product: per-pixel appearance; Cycles: the same function per shading point (OSL)"
+LABEL_PRODUCT_VS_BAKE = "the product: per-pixel appearance; Cycles: vertex bake (before the OSL shader)"
+
+
 def tiles(scene, views, names, normals, args) -> None:
-    """PSNR of the product's RGB (per-pixel appearance and vertex albedo, K 64, ``--ref-bounces``) on
-    full-resolution tiles against a Cycles border render of ``--ref-spp`` samples (two halves)."""
+    """PSNR of the ray caster's RGB (K 64, ``--ref-bounces``) on full-resolution tiles against Cycles border
+    renders of ``--ref-spp`` samples (two halves): vertex albedo on both sides (light transport alone), and
+    the product's per-pixel appearance against Cycles' per-shading-point appearance (and, for comparison,
+    against the vertex-bake reference)."""
     from room_pipeline.render.indirect import IndirectConfig
 
     rp = render_params_default({k: json.loads(v) for k, v in (x.split("=", 1) for x in args.set)})
+    ref_textures = [t for t in args.ref_textures.split(",") if t]
     film = scene.film
     rows = []
     for n in names:
@@ -269,13 +290,18 @@ def tiles(scene, views, names, normals, args) -> None:
         boxes = grid_boxes(args.res, args.tile, args.grid_tiles) if args.grid_tiles else tile_boxes(args.res, args.tile)
         for box in boxes:
             x0, x1, y0, y1 = box
-            a, b, meta = reference(sc, normals, f"{n}_tile{x0}_{y0}", args, args.ref_bounces, args.ref_spp,
-                                   border=box)
-            a, b = a[y0:y1, x0:x1], b[y0:y1, x0:x1]
-            ref8 = to8(0.5 * (a + b), film, ev)
-            mse_ref = float(np.mean((to8(a, film, ev) - to8(b, film, ev)) ** 2)) / 4
-            for label, lin in (("ray caster + indirect, vertex albedo (same texture as Cycles)", lin_v),
-                               ("the product: ray caster + indirect, per-pixel appearance", lin_p)):
+            refs = {}
+            for tex in ref_textures:
+                a, b, meta = reference(sc, normals, f"{n}_tile{x0}_{y0}", args, args.ref_bounces, args.ref_spp,
+                                       border=box, texture=tex)
+                a, b = a[y0:y1, x0:x1], b[y0:y1, x0:x1]
+                refs[tex] = (to8(0.5 * (a + b), film, ev),
+                             float(np.mean((to8(a, film, ev) - to8(b, film, ev)) ** 2)) / 4, meta)
+            for label, lin, tex in ((LABEL_VERTEX, lin_v, "vertex"), (LABEL_PRODUCT, lin_p, "per_point"),
+                                    (LABEL_PRODUCT_VS_BAKE, lin_p, "vertex")):
+                if tex not in refs:
+                    continue
+                ref8, mse_ref, meta = refs[tex]
                 x = to8(lin[y0:y1, x0:x1], film, ev)
                 mse = float(np.mean((x - ref8) ** 2))
                 rows.append({"view": n, "pose": i, "tile": box, "method": label, "psnr_db": psnr(mse),
@@ -318,7 +344,9 @@ def write_grid_md(out: str = "realism_indirect") -> None:
          "shadow rays, no clamp, no Filter Glossy, two seeds of half the samples each) and compared with the same "
          "pixels of the ray caster's full frame (K 64 rays per vertex, the render stage's config). Same mesh on "
          "both sides; 'vertex albedo' = the appearance baked at the vertices on both sides (the light transport "
-         "alone); 'per-pixel appearance' = the product's texture, which Cycles can only see baked at the vertices. "
+         "alone); 'per-pixel appearance' = the product's texture (noise fields every 2nd pixel, bilinear), "
+         "against Cycles evaluating the same appearance function at every shading point (an OSL shader, "
+         "render/texture_osl.py) or, for comparison, its vertex bake. "
          "Pooled = PSNR of the mean MSE over the tiles; PSNR* removes the reference's own noise (MSE(a, b) / 4). "
          f"The exposure is metered on the product's full frame. Load average {d['load_avg'][0]:.1f}.", "",
          "| view (pose) | method | tiles (px) | pooled PSNR dB | pooled PSNR* dB | worst tile PSNR dB | reference's own "
