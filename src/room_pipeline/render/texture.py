@@ -4,11 +4,14 @@
 (at every hit: the exact world hit point and the airway coordinates
 interpolated from the mesh vertices, :func:`airway_coordinates`), so detail
 finer than a triangle (cartilage rings, vessels) is not lost on the long
-triangles of a decimated tube.  Cycles reads the same function baked at the
-mesh vertices (a POINT-domain colour attribute, :meth:`Scene.vertex_albedo
-<room_pipeline.render.scene.Scene.vertex_albedo>`): it agrees with the ray
-caster at the vertex-sampling level only (stated limit).  The pattern sticks
-to the surface (the same world point has the same albedo in every view).
+triangles of a decimated tube.  Cycles evaluates the same function at every
+shading point too: :mod:`room_pipeline.render.texture_osl` writes this
+module's arithmetic (tables, fBm, vessels, anatomy factor) as an OSL shader
+(equal to ~1e-5, float32; tests/test_texture.py).  The per-vertex bake
+(:meth:`Scene.vertex_albedo <room_pipeline.render.scene.Scene.vertex_albedo>`)
+remains for the ray caster's ``per_pixel_texture=False`` and Cycles'
+``texture='vertex'``.  The pattern sticks to the surface (the same world
+point has the same albedo in every view).
 
 Anatomy (airway coordinates ``s`` = arc length from the trachea's start along
 the centreline path, mm; ``theta`` = angle around the branch's centreline,
@@ -38,7 +41,7 @@ The result is rescaled per channel so that its mean over space equals
 of the mesh), so the colour statistics of an untextured render are kept;
 values are clipped to [0, 1].
 
-Resolution: the texture is evaluated at mesh *vertices* only and interpolated
+Resolution of the vertex bake: evaluated at mesh *vertices* only and interpolated
 linearly across triangles, so detail finer than the vertex spacing (about
 0.35-1.2 mm on the lumen meshes; median edge 1.2 mm on the phantom) is not
 represented: vessels narrower than that come out as ~1-vertex-wide, softened
