@@ -114,12 +114,16 @@ def reference(sc, normals, name: str, args, bounces: int, spp: int, border=None,
     halves, cpu = [], []
     for seed in (1000, 1001):
         p = cache / f"{name}_{k}_{seed}.npy"
+        cpu_file = Path(str(p) + ".cpu_s")            # the half's CPU s when it was rendered
         if p.exists():
             halves.append(np.load(p))
+            if cpu_file.exists():
+                cpu.append(float(cpu_file.read_text()))
             continue
         img, c = cycles_linear(sc, normals, spp // 2, bounces, seed, args.threads, border=border, texture=texture)
         np.save(str(p) + ".tmp.npy", img)
         os.replace(str(p) + ".tmp.npy", p)
+        cpu_file.write_text(f"{c!r}\n")
         halves.append(img)
         cpu.append(c)
         print(f"  reference {name} half {seed}: {c:.0f} CPU s", flush=True)
@@ -139,13 +143,14 @@ def to8(lin, film, ev):
     return apply_response(np.asarray(lin, np.float32), film, exposure_ev=ev).astype(np.float64) / 255
 
 
-def raycast_linear(sc, per_pixel: bool, indirect, threads: int, stride: int = 2, rc_cache: dict | None = None):
+def raycast_linear(sc, per_pixel: bool, indirect, threads: int, stride: int = 2, rc_cache: dict | None = None,
+                   transport_albedo: str = "area_mean"):
     """Linear radiance (exposure 0, no vignetting) of the ray caster, its CPU s and build CPU s."""
     from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
 
     sc0 = dataclasses.replace(sc, film=dataclasses.replace(sc.film, exposure_ev=0.0, frame_ev=None, vignetting=0.0))
     rc = RaycastRenderer(sc0, RaycastConfig(nthreads=threads, per_pixel_texture=per_pixel, shading_stride=stride,
-                                            indirect=indirect))
+                                            indirect=indirect, transport_albedo=transport_albedo))
     b0 = time.process_time()
     if indirect.bounces > 0:
         rc.radiosity
@@ -177,6 +182,8 @@ def main() -> None:
     ap.add_argument("--ref-textures", default="vertex,per_point",
                     help="with --tiles: the Cycles references to render, comma-separated: 'vertex' (the vertex bake: "
                     "light transport alone) and/or 'per_point' (the appearance function per shading point, OSL)")
+    ap.add_argument("--transport-albedo", default="area_mean", choices=("area_mean", "point"),
+                    help="with --tiles: the product's inter-reflection albedo (RaycastConfig.transport_albedo)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
                     help="a render parameter over conf/render for every scene, e.g. --set 'base_color=[0.7,0.5,0.5]'")
     ap.add_argument("--speed", action="store_true", help="CPU s per frame of the default RGB with and without "
@@ -284,8 +291,10 @@ def tiles(scene, views, names, normals, args) -> None:
         i = views[n]
         sc = one_view(scene, i)
         cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64)
-        lin_v, cpu_v, _ = raycast_linear(sc, False, cfg, args.threads)
-        lin_p, cpu_p, _ = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride)
+        lin_v, cpu_v, build_v = raycast_linear(sc, False, cfg, args.threads)
+        lin_p, cpu_p, build_p = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride,
+                                               transport_albedo=args.transport_albedo)
+        builds = {LABEL_VERTEX: build_v, LABEL_PRODUCT: build_p, LABEL_PRODUCT_VS_BAKE: build_p}
         ev = metered_ev(lin_p, film)                    # the frame's exposure, metered on the product's frame
         boxes = grid_boxes(args.res, args.tile, args.grid_tiles) if args.grid_tiles else tile_boxes(args.res, args.tile)
         for box in boxes:
@@ -307,7 +316,7 @@ def tiles(scene, views, names, normals, args) -> None:
                 rows.append({"view": n, "pose": i, "tile": box, "method": label, "psnr_db": psnr(mse),
                              "psnr_star_db": psnr(mse - mse_ref) if mse > mse_ref else None,
                              "ref_psnr_db": psnr(mse_ref), "exposure_ev": ev, "ref": meta,
-                             "mse": mse, "mse_ref": mse_ref})
+                             "mse": mse, "mse_ref": mse_ref, "transport_build_cpu_s": builds[label]})
                 print(json.dumps({k: v for k, v in rows[-1].items() if k != "ref"}), flush=True)
     doc = {"args": vars(args), "views": views, "rows": rows, "load_avg": os.getloadavg()}
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -321,6 +330,7 @@ def tiles(scene, views, names, normals, args) -> None:
                                "pixels": len(rs) * args.tile ** 2, "psnr_db": psnr(mse),
                                "psnr_star_db": psnr(mse - mref) if mse > mref else None, "ref_psnr_db": psnr(mref),
                                "worst_tile_psnr_db": min(r["psnr_db"] for r in rs),
+                               "transport_build_cpu_s": rs[0].get("transport_build_cpu_s"),
                                "ref_cpu_s": sum(sum(r["ref"]["cpu_s_halves"]) for r in rs)})
         doc["pooled"] = pooled
         (RESULTS / f"{args.out}_grid.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
@@ -338,7 +348,10 @@ def write_grid_md(out: str = "realism_indirect") -> None:
     L = [f"# Ray caster + inter-reflection vs a {a['ref_spp']}-spp Cycles reference: a {n}x{n} grid of tiles over "
          f"whole {res}x{res} frames", "",
          f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {res} --ref-spp {a['ref_spp']} --tiles "
-         f"--grid-tiles {n} --tile {t}`: in each view, {n * n} tiles of {t}x{t} px whose centres sit on a uniform "
+         f"--grid-tiles {n} --tile {t}"
+         + (f" --transport-albedo {a['transport_albedo']}" if a.get("transport_albedo", "area_mean") != "area_mean" else "")
+         + (f" --out {a['out']}" if a.get("out", "realism_indirect") != "realism_indirect" else "")
+         + "".join(f" --set '{x}'" for x in a.get("set", [])) + f"`: in each view, {n * n} tiles of {t}x{t} px whose centres sit on a uniform "
          f"{n}x{n} grid ((k + 0.5) x {res} / {n} px), {100 * cover:.1f} % of the frame's pixels, rendered by Cycles "
          f"(border render of the full {res}x{res} frame: the same camera, same light; {a['ref_bounces']} bounces, "
          "shadow rays, no clamp, no Filter Glossy, two seeds of half the samples each) and compared with the same "
@@ -348,13 +361,20 @@ def write_grid_md(out: str = "realism_indirect") -> None:
          "against Cycles evaluating the same appearance function at every shading point (an OSL shader, "
          "render/texture_osl.py) or, for comparison, its vertex bake. "
          "Pooled = PSNR of the mean MSE over the tiles; PSNR* removes the reference's own noise (MSE(a, b) / 4). "
+         "The product's inter-reflection re-emits with the appearance averaged over each vertex's hat function "
+         f"(RaycastConfig.transport_albedo '{a.get('transport_albedo', 'area_mean')}'), the vertex-albedo rows "
+         "with the point bake; 'transport "
+         "build' = CPU s of building the precomputed transport in this process: the gather matrix is built once per "
+         "mesh and shared (the first row), so the other rows show the vertex albedo's cost alone (point bake or area "
+         "mean). "
          f"The exposure is metered on the product's full frame. Load average {d['load_avg'][0]:.1f}.", "",
          "| view (pose) | method | tiles (px) | pooled PSNR dB | pooled PSNR* dB | worst tile PSNR dB | reference's own "
-         "PSNR dB | reference CPU s |", "|---|---|---|---|---|---|---|---|"]
+         "PSNR dB | reference CPU s | transport build CPU s |", "|---|---|---|---|---|---|---|---|---|"]
     for r in d["pooled"]:
         ps = "" if r["psnr_star_db"] is None else f"{r['psnr_star_db']:.2f}"
         L.append(f"| {r['view']} ({r['pose']}) | {r['method']} | {r['tiles']} ({r['pixels']}) | {r['psnr_db']:.2f} | "
-                 f"{ps} | {r['worst_tile_psnr_db']:.2f} | {r['ref_psnr_db']:.1f} | {r['ref_cpu_s']:.0f} |")
+                 f"{ps} | {r['worst_tile_psnr_db']:.2f} | {r['ref_psnr_db']:.1f} | {r['ref_cpu_s']:.0f} | "
+                 f"{r.get('transport_build_cpu_s') or float('nan'):.2f} |")
     L += ["", "Per tile: `benchmarks/results/" + out + "_grid.json`."]
     (RESULTS / f"{out}_grid.md").write_text("\n".join(L) + "\n")
     print("\n".join(L))
