@@ -111,7 +111,7 @@ class RaycastConfig:
         walls re-emit with their mean albedo) or 'point' (its value at the vertex,
         :meth:`Scene.vertex_albedo`, which aliases detail finer than the vertex
         spacing; against Cycles' per-shading-point reference, 600x600 tile grid:
-        trachea 38.2 -> 38.8 dB, bifurcation 37.6 -> 38.9 dB,
+        trachea 38.2 -> 38.9 dB, bifurcation 37.6 -> 38.9 dB, distal 41.3 -> 41.4 dB,
         benchmarks/results/realism_indirect_grid.md).  Without ``per_pixel_texture`` the
         transport uses the point bake, as the pixels do.
     """
