@@ -141,8 +141,8 @@ class CyclesSettings:
     0 = no clamp: an unbiased reference, since near the tip light a bounced sample's radiance exceeds 10);
     filter_glossy: Cycles' ``blur_glossy`` (Blender's default 1.0; 0 = the glossy lobe keeps its roughness
     after a diffuse bounce, unbiased); texture: how a textured Scene's albedo reaches Cycles -- 'per_point'
-    (the appearance function in OSL at every shading point) or 'vertex' (its per-vertex bake, interpolated).  The references of benchmarks/realism_indirect.py and the closed-sphere
-    test use 0 and 0 (tests/test_indirect.py: with Blender's defaults the sphere renders ~3 % darker).
+    (the appearance function in OSL at every shading point) or 'vertex' (its per-vertex bake,
+    interpolated).  The references of benchmarks/realism_indirect.py and the closed-sphere test use 0 and 0 (tests/test_indirect.py: with Blender's defaults the sphere renders ~3 % darker).
     """
 
     samples: int = 4

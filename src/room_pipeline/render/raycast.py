@@ -98,7 +98,7 @@ class RaycastConfig:
     nthreads: Open3D ray-casting threads (0 = all cores).
     cache_frames: how many frames' casts are kept.
     per_pixel_texture: evaluate the mucosa appearance function at every hit
-        (True) or interpolate its per-vertex bake (False, what Cycles reads).
+        (True, what Cycles evaluates per shading point) or interpolate its per-vertex bake (False).
     shading_stride: the appearance's smooth noise fields are evaluated every
         ``shading_stride`` pixels and bilinearly interpolated (the sharp
         vessel threshold, rings and folds stay per pixel); 1 = every pixel
