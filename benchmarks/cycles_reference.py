@@ -24,8 +24,9 @@ it) and ``distal`` (90 % along the sequence).
 2. Every candidate's linear radiance goes through the same film (the view's automatic exposure as the
    render stage's per-frame gain control meters it, veiling glare, sRGB response, 8 bits): PSNR / PSNR* /
    SSIM of the 8-bit images.  Candidates: the ray caster (the default RGB: per-pixel appearance; and with
-   the appearance read at the vertices as Cycles reads it), Cycles at 1/2/4/16 spp with and without
-   OpenImageDenoise, bounces 1/2/4, and at half resolution upscaled.
+   the appearance read at the vertices), Cycles evaluating the appearance function per shading point
+   (CyclesSettings' default ``texture='per_point'``, an OSL shader; the reference too) at 1/2/4/16 spp
+   with and without OpenImageDenoise, bounces 1/2/4, and at half resolution upscaled.
 3. Cost: CPU seconds of this process per frame (``time.process_time``, all threads: what the frame costs
    on a shared machine) and wall seconds, the scene already built.
 
@@ -165,7 +166,11 @@ def cache_key(scene, i: int, res: int, spp: int, bounces: int) -> str:
     h.update(np.ascontiguousarray(scene.mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(scene.mesh.faces, dtype=np.int64).tobytes())
     h.update(np.round(scene.poses[i], 12).tobytes())
-    h.update(repr((scene.material, scene.light, res, spp, bounces)).encode())
+    from room_pipeline.render.blender import CyclesSettings
+
+    # the texture mode only when not the vertex bake, so references made before the OSL shader keep their keys
+    tex = CyclesSettings().texture
+    h.update(repr((scene.material, scene.light, res, spp, bounces) + (() if tex == "vertex" else (tex,))).encode())
     return h.hexdigest()[:16]
 
 

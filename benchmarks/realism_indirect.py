@@ -12,10 +12,13 @@ builds it: default conf/render, lens distortion off, views trachea / bifurcation
 route).
 
 **Same mesh on both sides**: Cycles and the ray caster render the render stage's mesh itself, with the
-same area-weighted smooth vertex normals (given to Blender as custom normals) and the appearance baked at
-its vertices (the ray caster with ``per_pixel_texture`` off reads the same bake), so the score measures the
-light transport only.  The product's default RGB (per-pixel appearance) is scored too: it differs from the
-reference by its texture detail as well.
+same area-weighted smooth vertex normals (given to Blender as custom normals).  Two appearances: the
+appearance baked at the vertices on both sides (Cycles ``texture='vertex'``, the ray caster with
+``per_pixel_texture`` off), so the score measures the light transport only; and the product's default RGB
+(the appearance function evaluated per pixel) against Cycles evaluating the same function at every
+shading point (``texture='per_point'``: the OSL shader of render/texture_osl.py), the product's own
+appearance as the reference.  ``--tiles`` scores both (and the product against the vertex-bake reference,
+as before the OSL shader existed).
 
 References: Cycles, no adaptive sampling, no denoiser, ``--ref-bounces`` (8) bounces, shadow rays on (the
 physical light; the product's Cycles preset skips them), no sample clamp and no Filter Glossy (Blender's
@@ -66,13 +69,13 @@ def one_view(scene, i: int, ev: float | None = None):
 
 
 def cycles_linear(sc, normals, spp: int, bounces: int, seed: int, threads: int, shadows: bool = True,
-                  denoise: bool = False, border=None) -> tuple[np.ndarray, float]:
+                  denoise: bool = False, border=None, texture: str = "vertex") -> tuple[np.ndarray, float]:
     """Raw linear radiance (exposure 0) of a one-pose scene from Cycles, and its CPU seconds."""
     from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
 
     st = CyclesSettings(samples=spp, adaptive_threshold=0.0, denoise=denoise, seed=seed, exposure=0.0,
                         max_bounces=bounces, threads=threads, cast_shadows=shadows, clamp_indirect=0.0,
-                        filter_glossy=0.0)
+                        filter_glossy=0.0, texture=texture)
     with CyclesRenderer(sc, st, vertex_normals=normals) as r:
         if border is not None:
             set_border(r, border)
@@ -101,24 +104,30 @@ def key_of(sc, *parts) -> str:
     return h.hexdigest()[:16]
 
 
-def reference(sc, normals, name: str, args, bounces: int, spp: int, border=None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Two cached halves (linear, exposure 0) of a Cycles reference."""
+def reference(sc, normals, name: str, args, bounces: int, spp: int, border=None,
+              texture: str = "vertex") -> tuple[np.ndarray, np.ndarray, dict]:
+    """Two cached halves (linear, exposure 0) of a Cycles reference (``texture``: CyclesSettings.texture)."""
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
-    k = key_of(sc, spp, bounces, border, "shadows", "unclamped")
+    parts = (spp, bounces, border, "shadows", "unclamped") + (() if texture == "vertex" else (texture,))
+    k = key_of(sc, *parts)
     halves, cpu = [], []
     for seed in (1000, 1001):
         p = cache / f"{name}_{k}_{seed}.npy"
+        cpu_file = Path(str(p) + ".cpu_s")            # the half's CPU s when it was rendered
         if p.exists():
             halves.append(np.load(p))
+            if cpu_file.exists():
+                cpu.append(float(cpu_file.read_text()))
             continue
-        img, c = cycles_linear(sc, normals, spp // 2, bounces, seed, args.threads, border=border)
+        img, c = cycles_linear(sc, normals, spp // 2, bounces, seed, args.threads, border=border, texture=texture)
         np.save(str(p) + ".tmp.npy", img)
         os.replace(str(p) + ".tmp.npy", p)
+        cpu_file.write_text(f"{c!r}\n")
         halves.append(img)
         cpu.append(c)
         print(f"  reference {name} half {seed}: {c:.0f} CPU s", flush=True)
-    return halves[0], halves[1], {"spp": spp, "bounces": bounces, "cpu_s_halves": cpu}
+    return halves[0], halves[1], {"spp": spp, "bounces": bounces, "cpu_s_halves": cpu, "texture": texture}
 
 
 def metered_ev(lin: np.ndarray, film, mask=None) -> float:
@@ -134,13 +143,14 @@ def to8(lin, film, ev):
     return apply_response(np.asarray(lin, np.float32), film, exposure_ev=ev).astype(np.float64) / 255
 
 
-def raycast_linear(sc, per_pixel: bool, indirect, threads: int, stride: int = 2, rc_cache: dict | None = None):
+def raycast_linear(sc, per_pixel: bool, indirect, threads: int, stride: int = 2, rc_cache: dict | None = None,
+                   transport_albedo: str = "area_mean"):
     """Linear radiance (exposure 0, no vignetting) of the ray caster, its CPU s and build CPU s."""
     from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
 
     sc0 = dataclasses.replace(sc, film=dataclasses.replace(sc.film, exposure_ev=0.0, frame_ev=None, vignetting=0.0))
     rc = RaycastRenderer(sc0, RaycastConfig(nthreads=threads, per_pixel_texture=per_pixel, shading_stride=stride,
-                                            indirect=indirect))
+                                            indirect=indirect, transport_albedo=transport_albedo))
     b0 = time.process_time()
     if indirect.bounces > 0:
         rc.radiosity
@@ -169,11 +179,21 @@ def main() -> None:
     ap.add_argument("--grid-tiles", type=int, default=0, help="with --tiles: an N x N grid of tiles covering "
                     "each frame uniformly (tile centres at (k + 0.5) res / N) instead of the centre and one near-wall "
                     "tile; results realism_indirect_grid.{json,md}")
+    ap.add_argument("--ref-textures", default="vertex,per_point",
+                    help="with --tiles: the Cycles references to render, comma-separated: 'vertex' (the vertex bake: "
+                    "light transport alone) and/or 'per_point' (the appearance function per shading point, OSL)")
+    ap.add_argument("--transport-albedo", default="area_mean", choices=("area_mean", "point"),
+                    help="with --tiles: the product's inter-reflection albedo (RaycastConfig.transport_albedo)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
                     help="a render parameter over conf/render for every scene, e.g. --set 'base_color=[0.7,0.5,0.5]'")
     ap.add_argument("--speed", action="store_true", help="CPU s per frame of the default RGB with and without "
                     "the indirect light, at --res (600 for the headline), each view")
     args = ap.parse_args()
+    tex = [t for t in args.ref_textures.split(",") if t]
+    if not tex or any(t not in ("vertex", "per_point") for t in tex):
+        print(f"realism_indirect: --ref-textures takes vertex and/or per_point, got {args.ref_textures!r}",
+              file=sys.stderr)
+        sys.exit(2)
     import bpy  # noqa: F401
 
     from cycles_reference import build_scene, pick_views, render_params
@@ -251,37 +271,52 @@ def grid_boxes(res: int, t: int, n: int) -> list[tuple[int, int, int, int]]:
     return [(x, x + t, y, y + t) for y in cs for x in cs]
 
 
+LABEL_VERTEX = "ray caster + indirect, vertex albedo; Cycles: vertex albedo (light transport alone)"
+LABEL_PRODUCT = "the product: per-pixel appearance; Cycles: the same function per shading point (OSL)"
+LABEL_PRODUCT_VS_BAKE = "the product: per-pixel appearance; Cycles: vertex bake (before the OSL shader)"
+
+
 def tiles(scene, views, names, normals, args) -> None:
-    """PSNR of the product's RGB (per-pixel appearance and vertex albedo, K 64, ``--ref-bounces``) on
-    full-resolution tiles against a Cycles border render of ``--ref-spp`` samples (two halves)."""
+    """PSNR of the ray caster's RGB (K 64, ``--ref-bounces``) on full-resolution tiles against Cycles border
+    renders of ``--ref-spp`` samples (two halves): vertex albedo on both sides (light transport alone), and
+    the product's per-pixel appearance against Cycles' per-shading-point appearance (and, for comparison,
+    against the vertex-bake reference)."""
     from room_pipeline.render.indirect import IndirectConfig
 
     rp = render_params_default({k: json.loads(v) for k, v in (x.split("=", 1) for x in args.set)})
+    ref_textures = [t for t in args.ref_textures.split(",") if t]
     film = scene.film
     rows = []
     for n in names:
         i = views[n]
         sc = one_view(scene, i)
         cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64)
-        lin_v, cpu_v, _ = raycast_linear(sc, False, cfg, args.threads)
-        lin_p, cpu_p, _ = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride)
+        lin_v, cpu_v, build_v = raycast_linear(sc, False, cfg, args.threads)
+        lin_p, cpu_p, build_p = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride,
+                                               transport_albedo=args.transport_albedo)
+        builds = {LABEL_VERTEX: build_v, LABEL_PRODUCT: build_p, LABEL_PRODUCT_VS_BAKE: build_p}
         ev = metered_ev(lin_p, film)                    # the frame's exposure, metered on the product's frame
         boxes = grid_boxes(args.res, args.tile, args.grid_tiles) if args.grid_tiles else tile_boxes(args.res, args.tile)
         for box in boxes:
             x0, x1, y0, y1 = box
-            a, b, meta = reference(sc, normals, f"{n}_tile{x0}_{y0}", args, args.ref_bounces, args.ref_spp,
-                                   border=box)
-            a, b = a[y0:y1, x0:x1], b[y0:y1, x0:x1]
-            ref8 = to8(0.5 * (a + b), film, ev)
-            mse_ref = float(np.mean((to8(a, film, ev) - to8(b, film, ev)) ** 2)) / 4
-            for label, lin in (("ray caster + indirect, vertex albedo (same texture as Cycles)", lin_v),
-                               ("the product: ray caster + indirect, per-pixel appearance", lin_p)):
+            refs = {}
+            for tex in ref_textures:
+                a, b, meta = reference(sc, normals, f"{n}_tile{x0}_{y0}", args, args.ref_bounces, args.ref_spp,
+                                       border=box, texture=tex)
+                a, b = a[y0:y1, x0:x1], b[y0:y1, x0:x1]
+                refs[tex] = (to8(0.5 * (a + b), film, ev),
+                             float(np.mean((to8(a, film, ev) - to8(b, film, ev)) ** 2)) / 4, meta)
+            for label, lin, tex in ((LABEL_VERTEX, lin_v, "vertex"), (LABEL_PRODUCT, lin_p, "per_point"),
+                                    (LABEL_PRODUCT_VS_BAKE, lin_p, "vertex")):
+                if tex not in refs:
+                    continue
+                ref8, mse_ref, meta = refs[tex]
                 x = to8(lin[y0:y1, x0:x1], film, ev)
                 mse = float(np.mean((x - ref8) ** 2))
                 rows.append({"view": n, "pose": i, "tile": box, "method": label, "psnr_db": psnr(mse),
                              "psnr_star_db": psnr(mse - mse_ref) if mse > mse_ref else None,
                              "ref_psnr_db": psnr(mse_ref), "exposure_ev": ev, "ref": meta,
-                             "mse": mse, "mse_ref": mse_ref})
+                             "mse": mse, "mse_ref": mse_ref, "transport_build_cpu_s": builds[label]})
                 print(json.dumps({k: v for k, v in rows[-1].items() if k != "ref"}), flush=True)
     doc = {"args": vars(args), "views": views, "rows": rows, "load_avg": os.getloadavg()}
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -295,6 +330,7 @@ def tiles(scene, views, names, normals, args) -> None:
                                "pixels": len(rs) * args.tile ** 2, "psnr_db": psnr(mse),
                                "psnr_star_db": psnr(mse - mref) if mse > mref else None, "ref_psnr_db": psnr(mref),
                                "worst_tile_psnr_db": min(r["psnr_db"] for r in rs),
+                               "transport_build_cpu_s": rs[0].get("transport_build_cpu_s"),
                                "ref_cpu_s": sum(sum(r["ref"]["cpu_s_halves"]) for r in rs)})
         doc["pooled"] = pooled
         (RESULTS / f"{args.out}_grid.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
@@ -312,21 +348,33 @@ def write_grid_md(out: str = "realism_indirect") -> None:
     L = [f"# Ray caster + inter-reflection vs a {a['ref_spp']}-spp Cycles reference: a {n}x{n} grid of tiles over "
          f"whole {res}x{res} frames", "",
          f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {res} --ref-spp {a['ref_spp']} --tiles "
-         f"--grid-tiles {n} --tile {t}`: in each view, {n * n} tiles of {t}x{t} px whose centres sit on a uniform "
+         f"--grid-tiles {n} --tile {t}"
+         + (f" --transport-albedo {a['transport_albedo']}" if a.get("transport_albedo", "area_mean") != "area_mean" else "")
+         + (f" --out {a['out']}" if a.get("out", "realism_indirect") != "realism_indirect" else "")
+         + "".join(f" --set '{x}'" for x in a.get("set", [])) + f"`: in each view, {n * n} tiles of {t}x{t} px whose centres sit on a uniform "
          f"{n}x{n} grid ((k + 0.5) x {res} / {n} px), {100 * cover:.1f} % of the frame's pixels, rendered by Cycles "
          f"(border render of the full {res}x{res} frame: the same camera, same light; {a['ref_bounces']} bounces, "
          "shadow rays, no clamp, no Filter Glossy, two seeds of half the samples each) and compared with the same "
          "pixels of the ray caster's full frame (K 64 rays per vertex, the render stage's config). Same mesh on "
          "both sides; 'vertex albedo' = the appearance baked at the vertices on both sides (the light transport "
-         "alone); 'per-pixel appearance' = the product's texture, which Cycles can only see baked at the vertices. "
+         "alone); 'per-pixel appearance' = the product's texture (noise fields every 2nd pixel, bilinear), "
+         "against Cycles evaluating the same appearance function at every shading point (an OSL shader, "
+         "render/texture_osl.py) or, for comparison, its vertex bake. "
          "Pooled = PSNR of the mean MSE over the tiles; PSNR* removes the reference's own noise (MSE(a, b) / 4). "
+         "The product's inter-reflection re-emits with the appearance averaged over each vertex's hat function "
+         f"(RaycastConfig.transport_albedo '{a.get('transport_albedo', 'area_mean')}'), the vertex-albedo rows "
+         "with the point bake; 'transport "
+         "build' = CPU s of building the precomputed transport in this process: the gather matrix is built once per "
+         "mesh and shared (the first row), so the other rows show the vertex albedo's cost alone (point bake or area "
+         "mean). "
          f"The exposure is metered on the product's full frame. Load average {d['load_avg'][0]:.1f}.", "",
          "| view (pose) | method | tiles (px) | pooled PSNR dB | pooled PSNR* dB | worst tile PSNR dB | reference's own "
-         "PSNR dB | reference CPU s |", "|---|---|---|---|---|---|---|---|"]
+         "PSNR dB | reference CPU s | transport build CPU s |", "|---|---|---|---|---|---|---|---|---|"]
     for r in d["pooled"]:
         ps = "" if r["psnr_star_db"] is None else f"{r['psnr_star_db']:.2f}"
         L.append(f"| {r['view']} ({r['pose']}) | {r['method']} | {r['tiles']} ({r['pixels']}) | {r['psnr_db']:.2f} | "
-                 f"{ps} | {r['worst_tile_psnr_db']:.2f} | {r['ref_psnr_db']:.1f} | {r['ref_cpu_s']:.0f} |")
+                 f"{ps} | {r['worst_tile_psnr_db']:.2f} | {r['ref_psnr_db']:.1f} | {r['ref_cpu_s']:.0f} | "
+                 f"{r.get('transport_build_cpu_s') or float('nan'):.2f} |")
     L += ["", "Per tile: `benchmarks/results/" + out + "_grid.json`."]
     (RESULTS / f"{out}_grid.md").write_text("\n".join(L) + "\n")
     print("\n".join(L))

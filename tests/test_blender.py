@@ -112,6 +112,9 @@ def test_settings_from_dict_rejects_unknown_key():
         CyclesSettings.from_dict({"denoise": "yes"})
     with pytest.raises(ConfigError, match="samples"):
         CyclesSettings.from_dict({"samples": 0})
+    assert CyclesSettings().texture == "per_point" and CyclesSettings.from_dict({"texture": "vertex"}).texture == "vertex"
+    with pytest.raises(ConfigError, match="texture"):
+        CyclesSettings.from_dict({"texture": "uv"})
 
 
 def test_linear_to_srgb8():

@@ -57,12 +57,18 @@ of both surfaces (accumulated over samples), the geometric flow is that of
 the surface at the pixel centre -- the dataset should write the geometric one
 (it matches depth, which is per pixel centre) with its validity mask.
 
-Texture: a textured :class:`Scene` (``material.texture``) carries a per-vertex
-albedo (:meth:`Scene.vertex_albedo`); it goes on the mesh as a linear
-``FLOAT_COLOR`` attribute in the POINT domain (``ALBEDO_ATTRIBUTE``), which an
-Attribute node feeds to the Principled BSDF's Base Color.  Cycles interpolates
-POINT-domain attributes barycentrically across each triangle, like the ray
-caster, so both backends see the same albedo at every surface point.
+Texture: a textured :class:`Scene` (``material.texture``) is rendered with
+the appearance function evaluated **per shading point** by default
+(``CyclesSettings.texture = 'per_point'``): an OSL script node
+(:mod:`room_pipeline.render.texture_osl`, compiled here with Cycles' own OSL
+compiler; Cycles runs OSL on the CPU, ``shading_system``) computes
+:func:`~room_pipeline.render.texture.mucosa_albedo` at the object-space hit
+point, with the airway coordinates from two POINT-domain attributes
+(interpolated barycentrically, as in the ray caster), and feeds the Principled
+BSDF's Base Color -- the appearance the ray caster evaluates at every pixel.
+``texture = 'vertex'``: the per-vertex bake (:meth:`Scene.vertex_albedo`) as a
+linear ``FLOAT_COLOR`` POINT attribute (``ALBEDO_ATTRIBUTE``) read by an
+Attribute node (detail below the vertex spacing lost; faster SVM shading).
 
 Camera: a Blender camera looks down its local -z with +y up, the OpenCV camera
 down +z with y down, so the Blender camera-to-world matrix is
@@ -98,6 +104,9 @@ CV_TO_BLENDER = np.diag([1.0, -1.0, -1.0, 1.0])
 #: Name of the mesh colour attribute holding the texture's per-vertex albedo (linear RGB).
 ALBEDO_ATTRIBUTE = "mucosa_albedo"
 
+#: How a textured Scene's albedo reaches Cycles (:attr:`CyclesSettings.texture`).
+TEXTURE_MODES = ("per_point", "vertex")
+
 #: Cycles writes this (1e10) in the Depth pass where a ray escapes.
 _NO_HIT_DEPTH = 1e9
 
@@ -131,8 +140,9 @@ class CyclesSettings:
     (FAST / BALANCED / HIGH); clamp_indirect: Cycles' ``sample_clamp_indirect`` (Blender's default 10;
     0 = no clamp: an unbiased reference, since near the tip light a bounced sample's radiance exceeds 10);
     filter_glossy: Cycles' ``blur_glossy`` (Blender's default 1.0; 0 = the glossy lobe keeps its roughness
-    after a diffuse bounce, unbiased).  The references of benchmarks/realism_indirect.py and the closed-sphere
-    test use 0 and 0 (tests/test_indirect.py: with Blender's defaults the sphere renders ~3 % darker).
+    after a diffuse bounce, unbiased); texture: how a textured Scene's albedo reaches Cycles -- 'per_point'
+    (the appearance function in OSL at every shading point) or 'vertex' (its per-vertex bake,
+    interpolated).  The references of benchmarks/realism_indirect.py and the closed-sphere test use 0 and 0 (tests/test_indirect.py: with Blender's defaults the sphere renders ~3 % darker).
     """
 
     samples: int = 4
@@ -151,6 +161,7 @@ class CyclesSettings:
     denoise_quality: str = "BALANCED"
     clamp_indirect: float = 10.0
     filter_glossy: float = 1.0
+    texture: str = "per_point"
 
     def __post_init__(self) -> None:
         if self.samples < 1:
@@ -168,6 +179,8 @@ class CyclesSettings:
         if not (self.clamp_indirect >= 0.0 and self.filter_glossy >= 0.0):
             raise ConfigError(f"cycles.clamp_indirect and cycles.filter_glossy must be >= 0, got "
                               f"{self.clamp_indirect}, {self.filter_glossy}")
+        if self.texture not in TEXTURE_MODES:
+            raise ConfigError(f"cycles.texture must be one of {TEXTURE_MODES}, got {self.texture!r}")
         if not 0.01 <= self.filter_width <= 10.0:
             raise ConfigError(f"cycles.filter_width must be in [0.01, 10] px, got {self.filter_width}")
 
@@ -307,7 +320,9 @@ class CyclesRenderer:
                 me.normals_split_custom_set_from_vertices([tuple(x) for x in vn.tolist()])
         else:
             me.shade_flat()
-        va = sc.vertex_albedo()
+        va = sc.vertex_albedo() if st.texture == "vertex" else None
+        if self._per_point_texture() and sc.vertex_airway is not None:  # the OSL shader's airway coordinates
+            _add_airway_attributes(me, sc.vertex_airway)
         if va is not None:  # the texture, baked per vertex: a linear float colour attribute (POINT domain)
             if len(va) != len(me.vertices):
                 raise RuntimeError(f"Blender mesh has {len(me.vertices)} vertices, vertex albedo {len(va)}")
@@ -388,6 +403,7 @@ class CyclesRenderer:
         r.engine = "CYCLES"
         c = bs.cycles
         c.device = "CPU"
+        c.shading_system = self._per_point_texture()  # OSL: the appearance function per shading point
         c.samples = int(st.samples)
         c.use_adaptive_sampling = st.adaptive_threshold > 0
         if st.adaptive_threshold > 0:
@@ -456,7 +472,9 @@ class CyclesRenderer:
             out = nt.nodes.get("Material Output") or nt.nodes.new("ShaderNodeOutputMaterial")
             nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
         bsdf.inputs["Base Color"].default_value = (*[float(x) for x in m.base_color], 1.0)
-        if self.scene.vertex_albedo() is not None:  # textured: Base Color <- the per-vertex albedo attribute
+        if self._per_point_texture():  # Base Color <- the appearance function at the shading point (OSL)
+            nt.links.new(self._osl_albedo(bpy, nt), bsdf.inputs["Base Color"])
+        elif self.scene.vertex_albedo() is not None:  # textured: Base Color <- the per-vertex albedo attribute
             attr = nt.nodes.new("ShaderNodeAttribute")
             attr.attribute_type = "GEOMETRY"
             attr.attribute_name = ALBEDO_ATTRIBUTE
@@ -472,6 +490,15 @@ class CyclesRenderer:
             bsdf.inputs["Subsurface Scale"].default_value = scale
             bsdf.subsurface_method = "RANDOM_WALK"
         return mat
+
+    def _per_point_texture(self) -> bool:
+        tex = self.scene.material.texture
+        return self.settings.texture == "per_point" and tex is not None and tex.enabled
+
+    def _osl_albedo(self, bpy, nt):
+        sc = self.scene
+        return osl_albedo_node(nt, sc.material.texture, sc.material.base_color, sc.vertex_airway is not None,
+                               self.tmp_dir)
 
     @staticmethod
     def _set_camera(cam, pose_cv: np.ndarray) -> None:
@@ -595,6 +622,107 @@ class CyclesRenderer:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def osl_albedo_node(nt, tex, base_color, with_airway: bool, tmp_dir: Path):
+    """An OSL script node in node tree ``nt`` evaluating the mucosa albedo (texture_osl.py); its output socket.
+
+    Compiled with Cycles' built-in OSL compiler (source and bytecode written to
+    ``tmp_dir``); the bytecode and its hash are stored on the node, and the
+    sockets made here (Blender's own socket update needs the ``oslquery`` module,
+    which the ``bpy`` wheel does not put on ``sys.path``).  With ``with_airway``
+    the shader reads the airway coordinates from the mesh's POINT attributes
+    (Attribute nodes).  Cycles must run OSL (``scene.cycles.shading_system``).
+    """
+    import hashlib
+
+    import _cycles  # Cycles' Python module, loaded with bpy
+
+    from .texture_osl import AIRWAY_GEN_ATTRIBUTE, AIRWAY_VECTOR_ATTRIBUTE, OUTPUT, SHADER_NAME, osl_source
+
+    src, oso = Path(tmp_dir) / f"{SHADER_NAME}.osl", Path(tmp_dir) / f"{SHADER_NAME}.oso"
+    src.write_text(osl_source(tex, tex.seed, base_color, with_airway), encoding="utf-8")
+    if not _cycles.osl_compile(str(src), str(oso)):
+        raise RuntimeError(f"Cycles could not compile the generated OSL shader {src}")
+    code = oso.read_text(encoding="utf-8")
+    node = nt.nodes.new("ShaderNodeScript")
+    node.mode = "INTERNAL"
+    node.bytecode = code
+    node.bytecode_hash = hashlib.md5(code.encode(), usedforsecurity=False).hexdigest()
+    node.outputs.new("NodeSocketColor", OUTPUT, identifier=OUTPUT)
+    if with_airway:
+        for name, sock, out in ((AIRWAY_VECTOR_ATTRIBUTE, "NodeSocketVector", "Vector"),
+                                (AIRWAY_GEN_ATTRIBUTE, "NodeSocketFloat", "Fac")):
+            node.inputs.new(sock, name, identifier=name)
+            attr = nt.nodes.new("ShaderNodeAttribute")
+            attr.attribute_type = "GEOMETRY"
+            attr.attribute_name = name
+            nt.links.new(attr.outputs[out], node.inputs[name])
+    return node.outputs[OUTPUT]
+
+
+def _add_airway_attributes(me, airway: np.ndarray) -> None:
+    """The (V, 4) airway coordinates as the OSL shader's two POINT attributes of Blender mesh ``me``."""
+    from .texture_osl import AIRWAY_GEN_ATTRIBUTE, AIRWAY_VECTOR_ATTRIBUTE
+
+    air = np.asarray(airway, dtype=np.float32)
+    me.attributes.new(AIRWAY_VECTOR_ATTRIBUTE, "FLOAT_VECTOR", "POINT").data.foreach_set(
+        "vector", np.ascontiguousarray(air[:, :3]).ravel())
+    me.attributes.new(AIRWAY_GEN_ATTRIBUTE, "FLOAT", "POINT").data.foreach_set("value", air[:, 3].copy())
+    me.update()
+
+
+def osl_albedo_at(points_world: np.ndarray, tex, base_color, airway: np.ndarray | None = None) -> np.ndarray:
+    """Cycles' per-shading-point albedo (N, 3) float32 at world points (N, 3), metres: the OSL shader itself.
+
+    Each point is the first vertex of its own triangle (20 nm sides), baked by
+    Cycles (EMIT bake to a float colour attribute, 1 sample): what
+    :class:`CyclesRenderer` with ``texture='per_point'`` shades there, for
+    comparison with :func:`~room_pipeline.render.texture.mucosa_albedo`.
+    ``airway``: optional (N, 4) coordinates.  Resets the process's Blender session.
+    """
+    import bpy
+
+    p = np.asarray(points_world, dtype=np.float32).reshape(-1, 3)
+    n = len(p)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bs = bpy.context.scene
+    bs.render.engine = "CYCLES"
+    bs.cycles.device = "CPU"
+    bs.cycles.shading_system = True
+    bs.cycles.samples = 1
+    v = np.concatenate([p, p + np.float32([2e-8, 0, 0]), p + np.float32([0, 2e-8, 0])])
+    me = bpy.data.meshes.new("probe")
+    me.from_pydata(v.tolist(), [], (np.arange(3 * n).reshape(3, n).T).tolist())
+    if airway is not None:
+        _add_airway_attributes(me, np.tile(np.asarray(airway, dtype=np.float32).reshape(-1, 4), (3, 1)))
+    out = me.color_attributes.new("baked", "FLOAT_COLOR", "CORNER")
+    me.color_attributes.active_color = out
+    obj = bpy.data.objects.new("probe", me)
+    bs.collection.objects.link(obj)
+    mat = bpy.data.materials.new("probe")
+    if mat.node_tree is None:
+        mat.use_nodes = True
+    nt = mat.node_tree
+    for nd in list(nt.nodes):
+        nt.nodes.remove(nd)
+    em = nt.nodes.new("ShaderNodeEmission")
+    nt.links.new(em.outputs[0], nt.nodes.new("ShaderNodeOutputMaterial").inputs["Surface"])
+    with tempfile.TemporaryDirectory(prefix="room_osl_") as d:
+        nt.links.new(osl_albedo_node(nt, tex, base_color, airway is not None, Path(d)), em.inputs["Color"])
+        me.materials.append(mat)
+        bpy.context.view_layer.objects.active = obj
+        obj.select_set(True)
+        bs.render.bake.target = "VERTEX_COLORS"
+        bpy.ops.object.bake(type="EMIT")
+    c = np.zeros(len(me.loops) * 4, dtype=np.float32)
+    out.data.foreach_get("color", c)
+    lv = np.zeros(len(me.loops), dtype=np.int64)
+    me.loops.foreach_get("vertex_index", lv)
+    res = np.zeros((n, 3), dtype=np.float32)
+    first = lv < n
+    res[lv[first]] = c.reshape(-1, 4)[first, :3]
+    return res
 
 
 def _fcurves(action):

@@ -4,11 +4,14 @@
 (at every hit: the exact world hit point and the airway coordinates
 interpolated from the mesh vertices, :func:`airway_coordinates`), so detail
 finer than a triangle (cartilage rings, vessels) is not lost on the long
-triangles of a decimated tube.  Cycles reads the same function baked at the
-mesh vertices (a POINT-domain colour attribute, :meth:`Scene.vertex_albedo
-<room_pipeline.render.scene.Scene.vertex_albedo>`): it agrees with the ray
-caster at the vertex-sampling level only (stated limit).  The pattern sticks
-to the surface (the same world point has the same albedo in every view).
+triangles of a decimated tube.  Cycles evaluates the same function at every
+shading point too: :mod:`room_pipeline.render.texture_osl` writes this
+module's arithmetic (tables, fBm, vessels, anatomy factor) as an OSL shader
+(equal to ~1e-5, float32; tests/test_texture.py).  The per-vertex bake
+(:meth:`Scene.vertex_albedo <room_pipeline.render.scene.Scene.vertex_albedo>`)
+remains for the ray caster's ``per_pixel_texture=False`` and Cycles'
+``texture='vertex'``.  The pattern sticks to the surface (the same world
+point has the same albedo in every view).
 
 Anatomy (airway coordinates ``s`` = arc length from the trachea's start along
 the centreline path, mm; ``theta`` = angle around the branch's centreline,
@@ -38,7 +41,7 @@ The result is rescaled per channel so that its mean over space equals
 of the mesh), so the colour statistics of an untextured render are kept;
 values are clipped to [0, 1].
 
-Resolution: the texture is evaluated at mesh *vertices* only and interpolated
+Resolution of the vertex bake: evaluated at mesh *vertices* only and interpolated
 linearly across triangles, so detail finer than the vertex spacing (about
 0.35-1.2 mm on the lumen meshes; median edge 1.2 mm on the phantom) is not
 represented: vessels narrower than that come out as ~1-vertex-wide, softened
@@ -371,3 +374,46 @@ def airway_coordinates(points_world: np.ndarray, graph) -> np.ndarray:
     out[:, 2] = np.where(rn > 1e-12, np.einsum("ij,ij->i", r, lat) / rn, 0.0)
     out[:, 3] = gens[idx]
     return out
+
+
+def vertex_albedo_area_mean(vertices: np.ndarray, faces: np.ndarray, params: MucosaTexture,
+                            base_color: tuple[float, float, float], airway: np.ndarray | None = None,
+                            n: int = 3) -> np.ndarray:
+    """Per-vertex albedo (V, 3) float32: the appearance function's mean over each vertex's hat function.
+
+    ``sum_T int_T lambda_v(x) albedo(x) dA / sum_T int_T lambda_v(x) dA`` over
+    the triangles T around vertex v (lambda_v: its barycentric coordinate), by
+    the centroids of the ``n * n`` congruent sub-triangles of every triangle
+    (equal weights).  For the light transport on the mesh (the inter-reflection
+    of render/indirect.py, whose irradiance is linear inside a triangle):
+    a wall re-emits the light of its surroundings with their mean albedo, not
+    with the value at one point (:meth:`Scene.vertex_albedo`, which aliases
+    detail finer than the vertex spacing: vessels, ring edges).  ``vertices``
+    in metres; ``airway``: optional (V, 4) vertex airway coordinates, interpolated
+    barycentrically as the ray caster does per pixel.
+    """
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if not params.enabled:
+        return np.broadcast_to(np.asarray(base_color, dtype=np.float32), v.shape).copy()
+    # barycentrics (m, 3) of the sub-triangle centroids: upward (i + 1/3, j + 1/3) and downward (i + 2/3, j + 2/3)
+    b = [((i + 1 / 3) / n, (j + 1 / 3) / n) for i in range(n) for j in range(n - i)]
+    b += [((i + 2 / 3) / n, (j + 2 / 3) / n) for i in range(n - 1) for j in range(n - 1 - i)]
+    uv = np.asarray(b)
+    lam = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)             # (m, 3)
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    pts = np.einsum("mk,fkc->fmc", lam, v[f]).reshape(-1, 3)
+    air = None
+    if airway is not None:
+        a = np.asarray(airway, dtype=np.float64).reshape(-1, 4)
+        air = np.einsum("mk,fkc->fmc", lam, a[f]).reshape(-1, 4)
+    alb = mucosa_albedo(pts, params, base_color=base_color, airway=air).astype(np.float64).reshape(len(f), len(lam), 3)
+    w = area[:, None, None] * lam[None, :, :]                                           # (F, m, 3 corners)
+    num = np.zeros((len(v), 3))
+    den = np.zeros(len(v))
+    for k in range(3):
+        np.add.at(num, f[:, k], np.einsum("fm,fmc->fc", w[:, :, k], alb))
+        np.add.at(den, f[:, k], w[:, :, k].sum(axis=1))
+    out = np.where(den[:, None] > 0, num / np.maximum(den, 1e-300)[:, None],
+                   mucosa_albedo(v, params, base_color=base_color, airway=airway))
+    return out.astype(np.float32)
