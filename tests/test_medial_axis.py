@@ -389,6 +389,7 @@ def test_root_inside_the_volume_when_the_trachea_is_cut_by_its_border(tilt_deg):
 
 
 CUTS = [0.0, -20.0, -30.0, -32.0, -35.0, -38.0]       # 40, 20, 10, 8, 5, 2 mm above the carina (z = -40)
+_SYNTH_CARINA: dict = {}                                # tilt -> the uncut tree's first bifurcation (m)
 
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 25.0])
@@ -408,14 +409,21 @@ def test_root_when_the_scan_is_cut_just_above_the_carina(top, tilt_deg):
     axis_x = np.tan(np.deg2rad(tilt_deg)) * (zt + 40 * MM)
     assert g.root.points[0][2] > zt - 3 * MM, rep
     assert abs(g.root.points[0][0] - axis_x) < 2 * MM and abs(g.root.points[0][1]) < 2 * MM, rep
-    # the two main bronchi (ends at x = +-19.7 mm, z = -69.7 mm) part below the cut by at least half the
-    # trachea left, and not below the carina's ridge (where the bronchi's lumens separate, z = -46.6 mm)
+    # the two main bronchi (ends at x = +-19.7 mm, z = -69.7 mm) part below the cut, not below the carina's
+    # ridge (where the bronchi's lumens separate, z = -46.6 mm), and, where the uncut tree's bifurcation lies
+    # below the cut, within the real-mask bound (test_real_mask_cut_above_the_carina) of it
     ends = {int(np.sign(b.points[-1][0])): b.id for b in g.leaves() if b.points[-1][2] < -60 * MM}
     assert sorted(ends) == [-1, 1], [(b.id, b.parent, (b.points[-1] / MM).round(1).tolist()) for b in g.branches]
     left, right = g.path_to(ends[-1]), g.path_to(ends[1])
     common = [a.id for a, b in zip(left, right) if a.id == b.id]
     node = g.branch(common[-1]).points[-1]
-    assert zt - node[2] > 0.5 * (top + 40) * MM and node[2] > -46.6 * MM, (node / MM, rep)
+    assert zt > node[2] > -46.6 * MM, (node / MM, rep)
+    if tilt_deg not in _SYNTH_CARINA:
+        _SYNTH_CARINA[tilt_deg] = extract_medial_axis(compute_sdf(_border_cut_tree_mask(tilt_deg), SdfParams()),
+                                                      MedialAxisParams()).graph.root.points[-1]
+    full = _SYNTH_CARINA[tilt_deg]
+    if full[2] < zt:
+        assert np.linalg.norm(node - full) < 5 * MM + 0.5 * (top + 40) * MM, (node / MM, full / MM, rep)
     if rep["root_entry_bifurcation"]:
         assert len(common) == 1 and len(g.children(g.root.id)) == 2, rep      # both bronchi: the root's children
         assert rep["root_stub_mm"] == pytest.approx(g.root.length / MM, rel=0.05, abs=0.5)

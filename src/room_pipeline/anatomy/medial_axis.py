@@ -390,6 +390,13 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     rep["root_centred"] = bool(aspect > FLAT_ASPECT and sheet_frac > 0.5)
     if rep["root_centred"]:
         root = centre
+    else:
+        # a round trachea: the widest of its points within one coarsest voxel of its top.  A cross-section's
+        # centre is its widest medial point, and the mask does not resolve the top more finely than that (3 mm
+        # slices under an oblique trachea, AirQuant, leave a staircase whose medial set is a band; its most
+        # superior point can lie on the band's edge, 5.9 mm off the axis)
+        top_slab = trachea[pts[trachea, 2] >= pts[root, 2] - float(np.linalg.norm(field.A, axis=0).max())]
+        root = int(top_slab[np.argmax(rad[top_slab])])
 
     in_root = comp == comp[root]
     dropped_comps = int(ncomp - 1)
@@ -524,6 +531,13 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
                 entry = _cut_entry(fork, pts, rad, field, voxel)
     if entry is not None:
         a_k, b_k, junction = _arms_split(fork, f_wide, sk, par, dist, pts, field)
+        rep["root_fork_in_scan"] = bool(entry[2] - pts[fork, 2] >= rad[fork])
+        if rep["root_fork_in_scan"]:
+            # the fork's ball lies wholly below the cut: the medial set around it is the uncut tree's, and
+            # the fork is the skeleton's own bifurcation (Med-MPD 3 cut 10 mm above: the full mask's carina
+            # exactly, where the arms' split lies 12 mm lower); its two wide arms are the main bronchi
+            a_k, b_k = f_wide
+            junction = pts[fork].copy()
         stub = float(np.linalg.norm(entry - junction))
         where = ", ".join(f"{v / 1e-3:.1f}" for v in entry)
         if stub < voxel:
