@@ -461,6 +461,29 @@ def test_no_trachea_when_the_scan_is_cut_at_the_carina(top):
         extract_medial_axis(compute_sdf(vol, SdfParams()), MedialAxisParams())
 
 
+@pytest.mark.parametrize("top", [-50.0, -60.0])
+def test_scan_cut_below_the_carina_is_an_error(top):
+    """Issue #18: a scan cut wholly below the carina (the ridge at z = -46.6) holds two separate trees, both
+    main bronchi open at its top slice; the segment stage kept the larger and the route started in a main
+    bronchus.  Now one clear error; a small island on the top slice (airway-model debris) is not a tree."""
+    from room_pipeline.anatomy.segment import validate_mask
+
+    from room_pipeline.anatomy.plausibility import check_mask
+
+    cut = _border_cut_tree_mask(0.0, top=top)
+    with pytest.raises(InputError, match="top slice cuts 2 separate airway trees.*below the carina"):
+        validate_mask(cut)
+    with pytest.raises(InputError, match=r"cut\.nii\.gz.*top slice cuts 2 separate airway trees"):
+        check_mask(cut, Path("cut.nii.gz"))                # the segment stage's check of an input mask
+    vol = _border_cut_tree_mask(0.0, top=-20.0)
+    d = vol.data.copy()
+    d[5:9, 5:9, -4:] = 1                                  # a 3 x 3 x 2.4 mm island on the top slice
+    rep: dict = {}
+    out = validate_mask(Volume(d, vol.affine), report=rep)
+    assert rep["dropped_components"] == 1 and out.data.sum() == (vol.data > 0).sum()
+    check_mask(Volume(d, vol.affine), Path("islands.nii.gz"))
+
+
 _REAL_REF: dict = {}
 
 
