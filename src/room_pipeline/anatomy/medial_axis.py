@@ -25,7 +25,7 @@ Method (Esposito et al., ROOM; written here from the description):
    cross-section, and the sheet is crossed by one trunk, the centroid path of its
    cross-sections; on a scan cut just above the carina, where the skeleton
    divides at the cut into two downward arms, the middle of the cut
-   cross-section, joined by a short root branch to where the arms part); a
+   cross-section, joined by a short root branch to the bifurcation: the fork, or the trunk's widest point); a
    shortest-path tree from the root is grown and branches are
    extracted TEASAR-like (farthest remaining point -> path back to the
    skeleton -> invalidate the points within ``invalidation_scale * r +
@@ -513,8 +513,8 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         # Two wide arms that both run down from the fork: the scan is cut just above the carina (the fork is
         # the bifurcation, the trachea above it a stub too short to hold a branch of its own).  Read it as a
         # bifurcation at the entry: a short root branch from the middle of the cut cross-section (_cut_entry)
-        # to where the two arms part (_arms_split), both arms its children.  Else (an arch, a narrowed
-        # trachea with a wide arm up, a closed top) the rules below apply.
+        # to the bifurcation (_arms_split; or the fork itself, below), both arms its children.  Else (an
+        # arch, a narrowed trachea with a wide arm up, a closed top) the rules below apply.
         sk = in_skel.copy()
         sk[chain] = False
         par = skel_parent.copy()
