@@ -388,6 +388,7 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     rep["trachea_top_radius_mm"] = round(float(rad[centre]) / 1e-3, 3)
     rep["trachea_top_sheet_fraction"] = round(sheet_frac, 3)
     rep["root_centred"] = bool(aspect > FLAT_ASPECT and sheet_frac > 0.5)
+    top_root = root
     if rep["root_centred"]:
         root = centre
     else:
@@ -481,6 +482,14 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     # off, so the root branch is the trachea.
     rep["root_reselected"] = False
     arms = _root_arms(root, in_skel, skel_parent, dist, pts, rad, 0.5 * float(rad[root]))
+    rep["root_top_widest"] = bool(root != top_root and not rep["root_centred"])
+    if rep["root_top_widest"] and len(arms) > 1:
+        # the top slab's widest point is not a free end of the skeleton (Med-MPD 2 cut 2 mm above the carina:
+        # the top slab is the carinal flare): the rules below start from the most superior wide point
+        root = top_root
+        rep["root_top_widest"] = False
+        in_skel, skel_parent, n_paths, dist = skeleton(root)
+        arms = _root_arms(root, in_skel, skel_parent, dist, pts, rad, 0.5 * float(rad[root]))
     keep_len = params.prune_factor * float(rad[root])
     wide_arms = [a for a, (_, w, far) in arms.items() if w >= keep_len and far >= keep_len]
     rep["root_arms"] = len(arms)
