@@ -25,7 +25,7 @@ Method (Esposito et al., ROOM; written here from the description):
    cross-section, and the sheet is crossed by one trunk, the centroid path of its
    cross-sections; on a scan cut just above the carina, where the skeleton
    divides at the cut into two downward arms, the middle of the cut
-   cross-section, joined by a short root branch to where the arms part); a
+   cross-section, joined by a short root branch to the bifurcation: the fork, or the trunk's widest point); a
    shortest-path tree from the root is grown and branches are
    extracted TEASAR-like (farthest remaining point -> path back to the
    skeleton -> invalidate the points within ``invalidation_scale * r +
@@ -388,8 +388,16 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     rep["trachea_top_radius_mm"] = round(float(rad[centre]) / 1e-3, 3)
     rep["trachea_top_sheet_fraction"] = round(sheet_frac, 3)
     rep["root_centred"] = bool(aspect > FLAT_ASPECT and sheet_frac > 0.5)
+    top_root = root
     if rep["root_centred"]:
         root = centre
+    else:
+        # a round trachea: the widest of its points within one coarsest voxel of its top.  A cross-section's
+        # centre is its widest medial point, and the mask does not resolve the top more finely than that (3 mm
+        # slices under an oblique trachea, AirQuant, leave a staircase whose medial set is a band; its most
+        # superior point can lie on the band's edge, 5.9 mm off the axis)
+        top_slab = trachea[pts[trachea, 2] >= pts[root, 2] - float(np.linalg.norm(field.A, axis=0).max())]
+        root = int(top_slab[np.argmax(rad[top_slab])])
 
     in_root = comp == comp[root]
     dropped_comps = int(ncomp - 1)
@@ -474,6 +482,14 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     # off, so the root branch is the trachea.
     rep["root_reselected"] = False
     arms = _root_arms(root, in_skel, skel_parent, dist, pts, rad, 0.5 * float(rad[root]))
+    rep["root_top_widest"] = bool(root != top_root and not rep["root_centred"])
+    if rep["root_top_widest"] and len(arms) > 1:
+        # the top slab's widest point is not a free end of the skeleton (Med-MPD 2 cut 2 mm above the carina:
+        # the top slab is the carinal flare): the rules below start from the most superior wide point
+        root = top_root
+        rep["root_top_widest"] = False
+        in_skel, skel_parent, n_paths, dist = skeleton(root)
+        arms = _root_arms(root, in_skel, skel_parent, dist, pts, rad, 0.5 * float(rad[root]))
     keep_len = params.prune_factor * float(rad[root])
     wide_arms = [a for a, (_, w, far) in arms.items() if w >= keep_len and far >= keep_len]
     rep["root_arms"] = len(arms)
@@ -506,8 +522,8 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         # Two wide arms that both run down from the fork: the scan is cut just above the carina (the fork is
         # the bifurcation, the trachea above it a stub too short to hold a branch of its own).  Read it as a
         # bifurcation at the entry: a short root branch from the middle of the cut cross-section (_cut_entry)
-        # to where the two arms part (_arms_split), both arms its children.  Else (an arch, a narrowed
-        # trachea with a wide arm up, a closed top) the rules below apply.
+        # to the bifurcation (_arms_split; or the fork itself, below), both arms its children.  Else (an
+        # arch, a narrowed trachea with a wide arm up, a closed top) the rules below apply.
         sk = in_skel.copy()
         sk[chain] = False
         par = skel_parent.copy()
@@ -524,6 +540,13 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
                 entry = _cut_entry(fork, pts, rad, field, voxel)
     if entry is not None:
         a_k, b_k, junction = _arms_split(fork, f_wide, sk, par, dist, pts, field)
+        rep["root_fork_in_scan"] = bool(entry[2] - pts[fork, 2] >= rad[fork])
+        if rep["root_fork_in_scan"]:
+            # the fork's ball lies wholly below the cut: the medial set around it is the uncut tree's, and
+            # the fork is the skeleton's own bifurcation (Med-MPD 3 cut 10 mm above: the full mask's carina
+            # exactly, where the arms' split lies 12 mm lower); its two wide arms are the main bronchi
+            a_k, b_k = f_wide
+            junction = pts[fork].copy()
         stub = float(np.linalg.norm(entry - junction))
         where = ", ".join(f"{v / 1e-3:.1f}" for v in entry)
         if stub < voxel:

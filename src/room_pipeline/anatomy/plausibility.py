@@ -217,6 +217,31 @@ class MaskCheck:
     report: dict
 
 
+#: a second piece at least this fraction of the largest is a second airway tree, not debris (the fraction of
+#: the cut cross-section's separate airways in trachea_root._cut_entry; a lung's bronchial tree holds roughly
+#: 40-60 % of the airway volume, airway-model islands a few voxels each)
+SECOND_TREE_FRACTION = 0.2
+
+
+def second_tree_at_top(lab: np.ndarray, sizes: np.ndarray, keep: int, affine: np.ndarray,
+                       shape: tuple[int, ...], box: tuple[slice, ...] | None = None) -> str | None:
+    """Why the scan holds no trachea, or None: the largest piece ``keep`` and another of at least
+    ``SECOND_TREE_FRACTION`` of its voxels both reach the volume's most superior slice (world +z).  That is a
+    scan cut below the carina, both main bronchi open at its top; keeping the largest would start the route in
+    a main bronchus.  ``lab`` holds the pieces' labels over ``box`` of a volume of ``shape`` (default: all)."""
+    ax = int(np.argmax(np.abs(affine[2, :3])))
+    top = shape[ax] - 1 if affine[2, ax] > 0 else 0
+    start = box[ax].start if box is not None else 0
+    if not start <= top < start + lab.shape[ax]:
+        return None                                       # no lumen on the top slice
+    on_top = np.unique(np.take(lab, top - start, axis=ax))
+    big = [int(c) for c in on_top if c and c != keep and sizes[c] >= SECOND_TREE_FRACTION * sizes[keep]]
+    if keep not in on_top or not big:
+        return None
+    return (f"the scan's top slice cuts {1 + len(big)} separate airway trees ({int(sizes[keep])} and "
+            f"{int(sizes[big[0]])} voxels): cut below the carina, no trachea to start the route in")
+
+
 def check_mask(vol: Volume, path=None, label: float | None = None, threshold: float | None = None,
                given: bool = True) -> MaskCheck:
     """Check and binarise an airway lumen mask (given by the user, or ``given=False``: segmented from a CT).
@@ -248,6 +273,9 @@ def check_mask(vol: Volume, path=None, label: float | None = None, threshold: fl
     keep = int(np.argmax(sizes))
     kept = int(sizes[keep])
     repairs = list(report.pop("repairs", []))
+    cut = second_tree_at_top(lab, sizes, keep, vol.affine, binary.shape, box)
+    if cut:
+        raise InputError(f"{where}: {cut}")
     if n > 1:
         share = kept / n_fg
         if share < MIN_LARGEST_PIECE_FRACTION:

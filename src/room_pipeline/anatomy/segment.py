@@ -42,6 +42,7 @@ from scipy import ndimage as ndi
 from ..conventions import MM
 from ..errors import BackendUnavailable, InputError
 from ..io.volume import Volume
+from .plausibility import second_tree_at_top
 from .region_growing import _segment_region_growing, _spacing_mm, _structure
 from .segment_params import TS_AIRWAY_NAME, TS_DATASET, TS_TASK, SegmentParams, SegmentResult
 
@@ -138,7 +139,8 @@ def validate_mask(mask: Volume, report: dict | None = None) -> Volume:
     """A user-supplied airway mask as uint8 0/1: voxels > 0, largest 26-connected component.
 
     Dropped components are logged (and counted in ``report`` when a dict is
-    given).  Raises :class:`InputError` if the mask is empty.
+    given).  Raises :class:`InputError` if the mask is empty, or when the scan's top cuts two airway trees
+    (:func:`~room_pipeline.anatomy.plausibility.second_tree_at_top`: a scan cut below the carina).
     """
     data = np.asarray(mask.data)
     binary = np.nan_to_num(data.astype(np.float64, copy=False), nan=0.0) > 0 if data.dtype.kind == "f" else data > 0
@@ -148,6 +150,9 @@ def validate_mask(mask: Volume, report: dict | None = None) -> Volume:
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
     keep = int(np.argmax(sizes))
+    cut = second_tree_at_top(lab, sizes, keep, mask.affine, lab.shape)
+    if cut:
+        raise InputError(f"airway mask: {cut}")
     out = (lab == keep).astype(np.uint8)
     dropped = int(sizes.sum() - sizes[keep])
     if n > 1:
