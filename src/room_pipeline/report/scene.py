@@ -52,6 +52,18 @@ def scope_backbones(simulation: Mapping, n_frames: int) -> tuple[list[np.ndarray
     return lines, np.array([b[-1] for b in lines]).reshape(-1, 3), list(picks)
 
 
+def _track(path: Path, name: str, what: str, label: str, notes: list[str]):
+    """``(document or None, its pose positions or None)`` of a trajectory/simulation file; a note when not drawn."""
+    doc, why = read_json(path)
+    try:
+        if doc is not None:
+            return doc, pose_track_from_doc(doc, POSE_KEY[name], path).positions
+    except (KeyError, TypeError, ValueError, IndexError, InputError):
+        doc, why = None, f"{name} has no {what}"
+    notes.append(f"{label} not drawn: {why}")
+    return doc, None
+
+
 def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[str]]:
     """The 3-D scene of one sequence and the caption lines saying what is drawn (and what is not)."""
     sp = SequencePaths(seq)
@@ -59,22 +71,8 @@ def sequence_scene(seq: Path, mesh, scope_frames: int) -> tuple[Scene3D, list[st
     notes = []
     if mesh is not None:
         sc.mesh_vertices, sc.mesh_faces = mesh.vertices, mesh.faces
-    traj, why = read_json(sp.trajectory)
-    try:
-        if traj is not None:
-            sc.planned = pose_track_from_doc(traj, POSE_KEY[TRAJECTORY_JSON], sp.trajectory).positions
-    except (KeyError, TypeError, ValueError, IndexError, InputError):
-        traj, why = None, "trajectory.json has no 4x4 frame poses"
-    if sc.planned is None:
-        notes.append(f"planned trajectory not drawn: {why}")
-    sim, why_s = read_json(sp.simulation)
-    try:
-        if sim is not None:
-            sc.simulated = pose_track_from_doc(sim, POSE_KEY[SIMULATION_JSON], sp.simulation).positions
-    except (KeyError, TypeError, ValueError, IndexError, InputError):
-        sim, why_s = None, "simulation.json has no tip poses"
-    if sc.simulated is None:
-        notes.append(f"simulated tip path not drawn: {why_s}")
+    _, sc.planned = _track(sp.trajectory, TRAJECTORY_JSON, "4x4 frame poses", "planned trajectory", notes)
+    sim, sc.simulated = _track(sp.simulation, SIMULATION_JSON, "tip poses", "simulated tip path", notes)
     rend, _ = read_json(sp.render_json)
     if isinstance(rend, dict) and rend.get("frames"):
         try:
