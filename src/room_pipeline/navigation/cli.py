@@ -5,12 +5,14 @@
         the depth registry (``depth.methods``), median-scaled to the ground truth.
     room navigate episode --output-dir DIR --patient ID --target BRANCH [--policy depth|darkest|oracle]
                           [--out FILE.json] [overrides]
-        One closed-loop episode (:mod:`.closed_loop`) on a patient whose anatomy stages have run.
+        One closed-loop episode (:mod:`.closed_loop`) on a patient whose anatomy stages have run; the depth
+        policy plans on ``navigate.depth`` (gt or an estimator on the rendered RGB, :mod:`.depth_source`) with
+        ``navigate.noise`` (sensor-noise beta), e.g. ``navigate.depth=shading_sfs navigate.noise=1``.
     room navigate targets --output-dir DIR --patient ID [--generation 4]
         The eligible target branches of a generation (navigate.benchmark.min_route_radius_mm).
 
 Overrides are Hydra-style ``key=value`` on the composed config (e.g. ``navigate.episode.max_time_s=30``).
-Bad requests (an unknown target, a frame without depth) end with one ``room: error:`` line, exit 2.
+Bad requests (an unknown target, a frame without depth, an unknown estimator) end with one ``room: error:`` line, exit 2.
 """
 from __future__ import annotations
 
@@ -105,12 +107,23 @@ def cmd_episode(args) -> int:
     cfg = _cfg(args.overrides)
     patient = load_patient(Path(args.output_dir), args.patient)
     check_target(patient.graph, args.target)          # before the physics is imported (pybullet prints a banner)
+    from .depth_source import NavPerception, loop_camera, make_depth_source
+
+    nav = _section(cfg, "navigate")           # the estimator too is checked before the physics is imported
+    perc = NavPerception.from_navigate(nav)
+    epd = dict(nav.get("episode") or {})
+    src = None
+    if (args.policy or epd.get("policy", "depth")) == "depth":
+        src = make_depth_source(perc, _section(cfg, "depth"), _section(cfg, "noise"),
+                                loop_camera(int(epd.get("image_px", 64)), float(epd.get("fov_deg", 85.0))),
+                                Path(args.output_dir))
     planner, ep, sim = params_from(cfg)
     if args.policy:
         ep = dataclasses.replace(ep, policy=args.policy)
     from .closed_loop import run_episode
 
-    res = run_episode(patient, args.target, ep, planner, sim)
+    res = run_episode(patient, args.target, ep, planner, sim, depth_source=src)
+    res["perception"] = {"depth": perc.depth if src is not None else "gt", "noise": perc.noise if src else 0.0}
     summary = {k: v for k, v in res.items() if k != "log"}
     print(json.dumps(summary, indent=1))
     if args.out:

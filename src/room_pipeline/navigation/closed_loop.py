@@ -51,7 +51,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 from scipy import ndimage
@@ -182,6 +182,12 @@ class _Eyes:
         d, hit = self.r.depth_at(pose, self.uv)
         return np.where(hit, d, 0.0).reshape(self.camera.height, self.camera.width)
 
+    def rgb(self, pose: np.ndarray) -> np.ndarray:
+        """(H, W, 3) uint8 sRGB frame at ``pose`` (for a depth estimator; needs ``rgb=True``)."""
+        self.scene.poses[0] = pose
+        self.r._cache.clear()
+        return self.r.render(0, {"rgb"})["rgb"]
+
     def luminance(self, pose: np.ndarray) -> np.ndarray:
         self.scene.poses[0] = pose
         self.r._cache.clear()                 # one reusable frame slot: a new pose each call
@@ -226,9 +232,12 @@ _THETA_GRID = np.linspace(0.0, 1.0, 2001)
 
 
 def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: PlannerParams,
-                sim_params: SimParams, geometry: ScopeGeometry | None = None, record_frames: bool = False
-                ) -> dict:
-    """One closed-loop episode toward branch ``target``; returns the outcome and per-step log (see module doc)."""
+                sim_params: SimParams, geometry: ScopeGeometry | None = None, record_frames: bool = False,
+                depth_source: Callable[[_Eyes, np.ndarray], np.ndarray] | None = None) -> dict:
+    """One closed-loop episode toward branch ``target``; returns the outcome and per-step log (see module doc).
+
+    ``depth_source(eyes, tip_pose)`` -> (H, W) planar depth, m (0 = none): what the ``depth`` policy plans on;
+    None = the ray caster's ground truth (:mod:`.depth_source` builds estimator-backed ones)."""
     check_target(patient.graph, target)
     sim_params = dataclasses.replace(sim_params, time_step_s=params.physics_step_s)
     geometry = geometry or ScopeGeometry()
@@ -240,7 +249,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
     route_tree = cKDTree(route_P)
     lumen = TrueLumen(patient.mesh)
     cam = CameraIntrinsics.from_fov(params.image_px, params.image_px, params.fov_deg, 1e-4, 0.5)
-    eyes = _Eyes(patient.mesh, cam, rgb=params.policy == "darkest")
+    eyes = _Eyes(patient.mesh, cam, rgb=params.policy == "darkest" or depth_source is not None)
 
     pose0 = start_pose(patient.graph, params.start_offset_mm * MM)
     trace = Trace(pose0)
@@ -320,7 +329,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 tan = route_P[j + 1] - route_P[j]
                 c1 = time.process_time()
             elif params.policy == "depth":
-                depth = eyes.depth(tip)
+                depth = eyes.depth(tip) if depth_source is None else depth_source(eyes, tip)
                 c1 = time.process_time()
                 cloud = back_project(depth, cam, 1)
                 tree = cKDTree(cloud.points) if len(cloud.points) else None

@@ -98,10 +98,18 @@ def run_demo(seq_dir: Path, frames: list[int], out_dir: Path, params: PlannerPar
     ids = set(reader.frame_ids)
     estimator = None
     if depth_source != "gt":
-        from ..depth.estimators import DepthParams, SequenceInfo, create, Frame
+        from ..depth.estimators import BackendUnavailable, ConfigError, DepthParams, SequenceInfo, create
 
         cam0 = CameraIntrinsics.from_dict(json.loads(sp.camera.read_text()))
-        estimator = create(depth_source, DepthParams.from_dict(depth_cfg), SequenceInfo(camera=cam0, root=seq_dir))
+        rend = json.loads(sp.render_json.read_text()).get("renderer")
+        info = SequenceInfo(camera=cam0, root=seq_dir, patient=seq_dir.parent.name, sequence=seq_dir.name,
+                            renderer=rend, output_dir=seq_dir.parent.parent)
+        try:
+            estimator = create(depth_source, DepthParams.from_dict(depth_cfg), info)
+        except ConfigError as exc:
+            raise InputError(f"--depth: {exc} (gt or a method of the depth registry)") from None
+        except BackendUnavailable as exc:
+            raise InputError(f"--depth {depth_source}: cannot run here: {exc}") from None
     results, files = [], {}
     for i in frames:
         if i not in ids:
@@ -119,7 +127,9 @@ def run_demo(seq_dir: Path, frames: list[int], out_dir: Path, params: PlannerPar
             from ..depth.estimators import Frame
             from ..depth.metrics import fit_to_shape
 
-            pred = fit_to_shape(np.asarray(estimator.predict(Frame(fr["rgb"], cam, i)), np.float64), gt.shape)
+            pred = fit_to_shape(estimator.predict(Frame(fr["rgb"], cam, i)), gt.shape,
+                                bool(getattr(estimator, "resizes", False)), f"--depth {depth_source}")
+            pred = pred.astype(np.float64)
             depth, scale = median_scale(pred, gt)
         else:
             depth = gt

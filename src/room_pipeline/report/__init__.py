@@ -2,7 +2,8 @@
 
 Modules, one job each: :mod:`.options` (what goes in), :mod:`.discovery` (patients and sequences),
 :mod:`.common` (HTML helpers), :mod:`.colour` (colour maps), :mod:`.sections` (summary, thumbnails,
-real vs synthetic), :mod:`.scene` and :mod:`.draw3d` (the 3-D view), :mod:`.metrics`, :mod:`.plots`
+real vs synthetic), :mod:`.scene` and :mod:`.draw3d` (the 3-D view),
+:mod:`.navigation` (the navigation demonstration), :mod:`.metrics`, :mod:`.plots`
 (benchmark plots), :mod:`.tables` (paper tables; Markdown by markdown-it-py), :mod:`.page` (the page)
 and :mod:`.cli` (``room report``).  Importing this package is cheap: matplotlib, pyvista and the image
 readers load on first use.
@@ -25,6 +26,9 @@ Sections (``<section id=...>``, in this order, see :data:`SECTIONS`)
                     insertion ``q3`` (the simulator's ``kinematic`` insertion model), then the
                     constant-curvature bending segment; the caption gives, per drawn frame, the
                     distance between that model tip and the simulated tip pose.
+    ``navigation``  only when the dataset holds ``room navigate demo`` output (:mod:`.navigation`): per
+                    planned frame, the RGB with the projected path and a 3-D view of the point cloud,
+                    the path, the scope's collision spheres and the true lumen mesh near them.
     ``metrics``     per patient, every ``metrics/*.json`` merged with its ``*.timing.json``: wall time,
                     peak RSS, the headline numbers and (collapsed) every recorded value.
     ``benchmarks``  speed-vs-error plots (matplotlib, Agg) from ``benchmarks/results/*.json`` and

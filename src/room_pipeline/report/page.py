@@ -10,6 +10,7 @@ from .common import esc, na, show_path
 from .discovery import find_patients
 from .draw3d import section_view3d
 from .metrics import section_metrics
+from .navigation import NAVIGATION_SECTION, section_navigation
 from .options import ReportOptions, SECTIONS
 from .plots import section_benchmarks
 from .sections import section_realism, section_summary, section_thumbnails
@@ -60,8 +61,13 @@ def build_report(opts: ReportOptions) -> str:
         "benchmarks": section_benchmarks(opts),
         "tables": section_tables(opts),
     }
+    sections = list(SECTIONS)
+    demo = section_navigation(opts)          # only for a dataset with `room navigate demo` output
+    if demo is not None:
+        sections.insert([sid for sid, _ in sections].index("view3d") + 1, NAVIGATION_SECTION)
+        bodies[NAVIGATION_SECTION[0]] = demo
     name = show_path(root, opts.base)
-    nav = "".join(f'<a href="#{sid}">{esc(title)}</a>' for sid, title in SECTIONS)
+    nav = "".join(f'<a href="#{sid}">{esc(title)}</a>' for sid, title in sections)
     parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
              f'<meta http-equiv="Content-Security-Policy" content="{_CSP}">',
              '<meta name="viewport" content="width=device-width, initial-scale=1">',
@@ -69,7 +75,7 @@ def build_report(opts: ReportOptions) -> str:
              '<body data-images-loaded="pending">',
              f"<header><h1>ROOM dataset report</h1><p>Dataset <code>{esc(name)}</code>; "
              f"room-pipeline {esc(__version__)}.</p><nav>{nav}</nav></header>"]
-    for sid, title in SECTIONS:
+    for sid, title in sections:
         parts.append(f'<section id="{sid}"><h2>{esc(title)}</h2>\n{bodies[sid]}\n</section>')
     parts.append("<footer>Written by <code>room report</code>; self-contained (images are embedded data URIs; "
                  "no network access). Same inputs give the same file: it carries no time stamp.</footer>")
