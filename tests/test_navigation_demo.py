@@ -177,3 +177,22 @@ def test_demo_with_an_estimator_median_scales_it(dataset, tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     f = json.loads((tmp_path / "d" / "navigation_demo.json").read_text())["frames"][0]
     assert f["depth_source"] == "shading_sfs" and f["median_scale"] > 0
+
+
+def test_route_command_points_where_the_sequence_goes():
+    """The demo's operator word: the route's position 30 mm on, projected; None straight ahead or behind."""
+    from room_pipeline.navigation.demo import route_command
+    from room_pipeline.render.camera import CameraIntrinsics
+
+    cam = CameraIntrinsics.from_fov(100, 100, 85.0)
+    straight = np.array([[0.0, 0.0, z] for z in np.arange(0, 0.05, 0.001)])
+    assert route_command(straight, 0, np.eye(4), cam) is None
+    up = straight + np.array([[0.0, -0.4 * z, 0.0] for z in straight[:, 2]])       # the route rises (-y: up)
+    cmd = route_command(up, 0, np.eye(4), cam)
+    assert cmd is not None and cmd[1] < -0.99
+    assert route_command(straight[::-1], 0, np.eye(4), cam) is None                # behind the camera
+
+
+def test_demo_command_route_is_recorded(dataset, demo):
+    f = json.loads((demo / "navigation_demo.json").read_text())["frames"][0]
+    assert f["command"] == "route" and "command_uv" in f and f["goal_regions"] >= 1

@@ -1,6 +1,7 @@
 """``room navigate``: the paper's navigation demonstration and closed-loop episodes.
 
-    room navigate demo SEQUENCE_DIR --out DIR [--frames 0,100] [--depth gt|METHOD] [--stride N] [overrides]
+    room navigate demo SEQUENCE_DIR --out DIR [--frames 0,100] [--depth gt|METHOD] [--stride N]
+                       [--command route|none] [overrides]
         Plan from the depth of chosen frames of a rendered sequence (:mod:`.demo`); METHOD is any name of
         the depth registry (``depth.methods``), median-scaled to the ground truth.
     room navigate episode --output-dir DIR --patient ID --target BRANCH [--policy depth|darkest|oracle]
@@ -84,7 +85,8 @@ def cmd_demo(args) -> int:
         raise InputError(f"--stride must be >= 1, got {args.stride}")
     seq = Path(args.sequence)
     out = Path(args.out)
-    doc = run_demo(seq, _frames(args.frames), out, planner, args.depth, args.stride, _section(cfg, "depth"))
+    doc = run_demo(seq, _frames(args.frames), out, planner, args.depth, args.stride, _section(cfg, "depth"),
+                   args.command)
     for f in doc["frames"]:
         if f.get("plan") is None and f.get("goal") is None and "reason" in f:
             print(f"frame {f['frame']}: {f['reason']}")
@@ -150,6 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--frames", default="0")
     d.add_argument("--depth", default="gt", help="gt or a depth method of the registry (median-scaled to gt)")
     d.add_argument("--stride", type=int, default=6, help="back-project every N-th row and column (600 px / 6: 10k points)")
+    d.add_argument("--command", choices=("route", "none"), default="route",
+                   help="route: seek the goal in the opening the sequence's route enters (the operator's word); "
+                        "none: the deepest opening")
     d.add_argument("--out", required=True, help="output folder (not inside the DVC-tracked sequence folder)")
     d.set_defaults(func=cmd_demo)
     e = sub.add_parser("episode", help="one closed-loop episode")

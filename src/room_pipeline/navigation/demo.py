@@ -68,13 +68,33 @@ def _ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
     return head + rec.tobytes()
 
 
+def route_command(positions: np.ndarray, i: int, pose: np.ndarray, camera: CameraIntrinsics,
+                  ahead_m: float = 0.03, min_offset: float = 0.1) -> np.ndarray | None:
+    """The operator's image-plane command (unit (u, v)) toward where the sequence's own route goes.
+
+    The first later camera position at least ``ahead_m`` (m) from frame ``i``'s (else the last), projected into
+    frame ``i``; None when it lies behind the camera or within ``min_offset`` x the image width of the centre
+    (straight on: no turn to ask for).  The closed loop's operator says left/right/up/down at a bifurcation; here
+    the direction is the route's own, so the goal is sought in the opening the sequence enters."""
+    P = np.asarray(positions, dtype=np.float64)
+    d = np.linalg.norm(P[i:] - P[i], axis=1)
+    j = i + int(np.argmax(d >= ahead_m)) if (d >= ahead_m).any() else len(P) - 1
+    x = np.linalg.inv(pose) @ np.r_[P[j], 1.0]
+    if j == i or x[2] <= camera.near:
+        return None
+    off = camera.project(x[None, :3])[0] - np.array([camera.cx, camera.cy])
+    n = float(np.linalg.norm(off))
+    return off / n if n >= min_offset * camera.width else None
+
+
 def demo_frame(depth: np.ndarray, pose: np.ndarray, camera: CameraIntrinsics, params: PlannerParams,
-               lumen: TrueLumen | None, stride: int) -> dict:
-    """Plan on one depth map; the plan, the goal and the true-lumen check (dict; arrays as numpy)."""
+               lumen: TrueLumen | None, stride: int, command: np.ndarray | None = None) -> dict:
+    """Plan on one depth map; the plan, the goal and the true-lumen check (dict; arrays as numpy).
+    ``command``: unit (u, v) image direction of the opening to take (None: the deepest opening)."""
     cloud = back_project(depth, camera, stride)
     if len(cloud.points) == 0:
         raise InputError("the depth map has no valid pixel: nothing to plan on")
-    goal = choose_goal(cloud, params)
+    goal = choose_goal(cloud, params, command)
     if goal is None:
         return {"cloud": cloud, "goal": None, "plan": None, "true_lumen": None}
     plan = plan_path(cloud, goal.point, params)
@@ -84,15 +104,24 @@ def demo_frame(depth: np.ndarray, pose: np.ndarray, camera: CameraIntrinsics, pa
 
 
 def run_demo(seq_dir: Path, frames: list[int], out_dir: Path, params: PlannerParams, depth_source: str = "gt",
-             stride: int = 2, depth_cfg=None) -> dict:
-    """The demonstration on ``frames`` of the rendered sequence ``seq_dir``; writes into ``out_dir``."""
+             stride: int = 2, depth_cfg=None, command: str = "route") -> dict:
+    """The demonstration on ``frames`` of the rendered sequence ``seq_dir``; writes into ``out_dir``.
+    ``command``: ``route`` (the operator points to the opening the sequence's route enters, :func:`route_command`)
+    or ``none`` (the deepest opening, whichever way the route goes)."""
     from ..dataset.reader import SequenceReader
 
     seq_dir = Path(seq_dir)
     sp = SequencePaths(seq_dir)
     if not sp.render_json.exists():
         raise InputError(f"{seq_dir}: not a rendered sequence (no {sp.render_json.relative_to(seq_dir)})")
+    if command not in ("route", "none"):
+        raise InputError(f"--command must be route or none, got {command!r}")
     reader = SequenceReader(seq_dir, ["rgb"])
+    from ..catalog import RENDER_JSON
+    from ..io.records import POSE_KEY, pose_track_from_doc
+
+    positions = pose_track_from_doc(json.loads(sp.render_json.read_text()), POSE_KEY[RENDER_JSON],
+                                    sp.render_json).positions
     mesh_path = PatientPaths(seq_dir.parent.parent, seq_dir.parent.name).mesh
     lumen = TrueLumen(read_obj(mesh_path))
     ids = set(reader.frame_ids)
@@ -133,9 +162,12 @@ def run_demo(seq_dir: Path, frames: list[int], out_dir: Path, params: PlannerPar
             depth, scale = median_scale(pred, gt)
         else:
             depth = gt
-        r = demo_frame(depth, fr["pose"], cam, params, lumen, stride)
+        cmd = route_command(positions, reader.frame_ids.index(i), fr["pose"], cam) if command == "route" else None
+        r = demo_frame(depth, fr["pose"], cam, params, lumen, stride, cmd)
         name = f"frame_{i:04d}"
-        entry = {"frame": i, "depth_source": depth_source, "median_scale": scale, "points": int(len(r["cloud"].points))}
+        entry = {"frame": i, "depth_source": depth_source, "median_scale": scale, "points": int(len(r["cloud"].points)),
+                 "command": command, "command_uv": None if cmd is None else np.round(cmd, 6).tolist(),
+                 "goal_regions": None if r["goal"] is None else r["goal"].regions}
         if r["plan"] is None:
             entry.update({"goal": None, "reason": "no free point farther than the scope radius"})
             results.append(entry)
