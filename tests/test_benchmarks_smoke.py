@@ -59,6 +59,7 @@ NEEDS = {"run": (_has_run, f"no complete rendered default run in {RUN} (room run
 SMOKE = {
     "config_validation.py": (["--repeats", "1"], ()),
     "trajectory.py": (["--max-generation", "2"], ()),
+    "navigation_sweep.py": (["--smoke"], ()),
     "phantom_vs_schmidt.py": (["--seeds", "1"], ()),
     "anatomy_speed.py": (["--sizes", "128"], ()),
     "anatomy_trachea_aspect.py": (["--quick"], ()),
