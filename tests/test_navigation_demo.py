@@ -196,3 +196,23 @@ def test_route_command_points_where_the_sequence_goes():
 def test_demo_command_route_is_recorded(dataset, demo):
     f = json.loads((demo / "navigation_demo.json").read_text())["frames"][0]
     assert f["command"] == "route" and "command_uv" in f and f["goal_regions"] >= 1
+
+
+def test_sweep_collects_episode_files_into_one_table(tmp_path):
+    """benchmarks/navigation_sweep.py --collect: `room navigate episode --out` files -> one row per (depth, noise)."""
+    base = {"patient": "p", "target": 3, "success": False, "time_s": 5.0, "path_length_mm": 20.0,
+            "peak_contact_force_n": 0.1, "min_wall_clearance_mm": 0.5, "generation_reached": 1, "control_steps": 50,
+            "cpu_per_step_s": {"total": 0.05}}
+    runs = []
+    for k, (d, n, oc) in enumerate([("gt", 0.0, "timeout"), ("cnn", 1.0, "wrong_branch"), ("cnn", 1.0, "reached")]):
+        f = tmp_path / f"run{k}.json"
+        f.write_text(json.dumps(base | {"outcome": oc, "success": oc == "reached", "perception": {"depth": d, "noise": n}}))
+        runs.append(f)
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "navigation_sweep.py"), "--collect", *map(str, runs),
+                        "--results", str(tmp_path / "res")], capture_output=True, text=True, encoding="utf-8")
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "res" / "navigation_sweep.json").read_text())
+    cells = {(c["depth"], c["noise"]): c for c in doc["cells"]}
+    assert set(cells) == {("gt", 0.0), ("cnn", 1.0)}
+    assert cells[("cnn", 1.0)]["success"] == 1 and cells[("cnn", 1.0)]["outcomes"] == {"reached": 1, "wrong_branch": 1}
+    assert "| cnn | 1 | 2 | 1/2 |" in (tmp_path / "res" / "navigation_sweep.md").read_text()
