@@ -5,5 +5,6 @@ planner.py      the sampling-based local planner (constant-curvature arc chains,
 lumen.py        distances to the TRUE lumen surface (Open3D), for scoring plans and episodes
 demo.py         the paper's single-frame demonstration (`room navigate demo`)
 closed_loop.py  closed-loop episodes in the PyBullet simulator, policies and the oracle / darkest baselines
+depth_source.py what the closed loop's depth policy plans on: gt or a depth estimator on the loop's (noisy) RGB
 cli.py          the `room navigate` tool
 """
