@@ -798,8 +798,8 @@ def plan_tracking(dirs: list[str]) -> None:
 
 
 def stop_at_wall(dirs: list[str]) -> None:
-    """Issue #17 with ``trajectory.stop_at_wall=true`` (planning/insertion_stop.py): on each DIR/patient_*/sequence_000
-    planned and simulated with the switch on (``room stage trajectory|simulate ... trajectory.stop_at_wall=true``),
+    """Issue #17 with ``trajectory.stop_at_wall=true`` (planning/insertion_stop.py; the default since session 9): on each
+    DIR/patient_*/sequence_000 planned and simulated with the switch on (``room run --until simulate``),
     the frames kept and dropped (trajectory.json ``insertion_stop``), the stage's simulated-vs-planned figures
     (simulation.json), and the defaults (raw step, as ``--converged-reference``) against the issue's physical-mass
     1 ms reference and the 0.5 ms run: tip and view p95 / max over all frames and over the frames in contact.
