@@ -12,6 +12,7 @@
     .venv/bin/python benchmarks/simulation.py --plan-clearance OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --stop-at-wall OUTPUT_DIR [OUTPUT_DIR ...]
     .venv/bin/python benchmarks/simulation.py --stop-at-wall-md
+    .venv/bin/python benchmarks/simulation.py --motor-law OUTPUT_DIR [OUTPUT_DIR ...]
 
 (The second form runs only section 8 below, on the sequences of the given pipeline output folders, e.g.
 after ``room run --until trajectory output_dir=/tmp/phys_out``, and updates that section of the results.)
@@ -797,8 +798,8 @@ def plan_tracking(dirs: list[str]) -> None:
 
 
 def stop_at_wall(dirs: list[str]) -> None:
-    """Issue #17 with ``trajectory.stop_at_wall=true`` (planning/insertion_stop.py): on each DIR/patient_*/sequence_000
-    planned and simulated with the switch on (``room stage trajectory|simulate ... trajectory.stop_at_wall=true``),
+    """Issue #17 with ``trajectory.stop_at_wall=true`` (planning/insertion_stop.py; the default since session 9): on each
+    DIR/patient_*/sequence_000 planned and simulated with the switch on (``room run --until simulate``),
     the frames kept and dropped (trajectory.json ``insertion_stop``), the stage's simulated-vs-planned figures
     (simulation.json), and the defaults (raw step, as ``--converged-reference``) against the issue's physical-mass
     1 ms reference and the 0.5 ms run: tip and view p95 / max over all frames and over the frames in contact.
@@ -856,11 +857,11 @@ def stop_at_wall_markdown(rows: list[dict], dirs: list[str]) -> None:
     res = ROOT / "benchmarks" / "results"
     radius_mm = 0.5 * SimParams().scope_diameter_mm
     f2 = lambda x, k, f=".2f": "-" if x is None else format(x[k], f)
-    md = ["# Issue #17 with trajectory.stop_at_wall=true (benchmarks/simulation.py --stop-at-wall)", "",
+    md = ["# Issue #17 with trajectory.stop_at_wall=true, the default (benchmarks/simulation.py --stop-at-wall)", "",
           "The insertion ends before the first frame whose planned camera or bending-segment backbone is closer to the "
           f"wall than the scope's radius ({radius_mm:g} mm; planning/insertion_stop.py).  DIR: `room run --patient P "
-          "--until trajectory output_dir=DIR`, then `room stage trajectory --patient P/sequence_000 output_dir=DIR "
-          "trajectory.stop_at_wall=true` and `room stage simulate` (same arguments).  Defaults (raw step, no halving) "
+          "--until simulate output_dir=DIR` (the default since session 9; before it, the stages were run with "
+          "`trajectory.stop_at_wall=true`).  Defaults (raw step, no halving) "
           "against the issue's physical-mass 1 ms reference (bounds p95 0.2 mm, 1 deg) and the 0.5 ms run; in contact = "
           "frames where the defaults or the 1 ms run touch the wall.  Simulated vs planned: the stage's simulation.json "
           "(bounds median 1.0 / max 2.5 mm, view median 2 deg, straight-stretch roll 1 deg).  CPU time on 2 shared cores.  "
@@ -887,8 +888,84 @@ def stop_at_wall_markdown(rows: list[dict], dirs: list[str]) -> None:
     print("\n".join(md))
 
 
+#: ``--motor-law`` runs (name, SimParams overrides), each with joint_integration motor and no step halving
+MOTOR_RUNS = [("motor, mass x10, dt 5 ms (the default mass and step)", {}),
+              ("motor, physical mass, dt 5 ms", {"mass_scale": 1.0, "time_step_s": 5e-3}),
+              ("motor, physical mass, dt 2.5 ms", {"mass_scale": 1.0, "time_step_s": 2.5e-3}),
+              ("motor, physical mass, dt 0.5 ms", {"mass_scale": 1.0, "time_step_s": 5e-4})]
+
+MOTOR_FREE_Q = [[G.q1_max, 0.3, 0.02], [-0.5 * G.q1_max, -1.0, 0.0], [0.2 * G.q1_max, 0.0, 0.0]]
+
+
+def motor_law(dirs: list[str]) -> None:
+    """Issue #17, the contact disagreement: the joints as velocity motors solved with the contacts in one LCP
+    (``simulate.joint_integration: motor``) on each DIR/patient_*/sequence_000, every run against the same law's
+    physical-mass 1 ms run (tip / view p95 and max, all frames and the frames either run is in contact),
+    simulated vs planned, contact force, CPU time.  Writes benchmarks/results/simulation_motor_law.{json,md}."""
+    rows = []
+    for d in dirs:
+        for root in sorted(Path(d).glob("patient_*")):
+            if not (root / "sequence_000" / "metadata" / "trajectory.json").exists():
+                continue
+            traj, mesh = _load_sequence(root)
+            mk = lambda kw: SimParams(**{**kw, "joint_integration": "motor", "max_step_halvings": 0})  # noqa: E731
+            ref = simulate(traj, mesh, mk(PHYS_REF), G)
+            for name, kw in MOTOR_RUNS:
+                c0 = time.process_time()
+                r = simulate(traj, mesh, mk(kw), G)
+                cpu = time.process_time() - c0
+                inc = (r.contact_force_n > 0) | (ref.contact_force_n > 0)
+                rows.append({"sequence": f"{root.name}/sequence_000", "dir": d, "run": name, "frames": int(len(r.tip_poses)),
+                             "frames_in_contact": int(inc.sum()), "vs_1ms": _vs(r.tip_poses, ref.tip_poses),
+                             "vs_1ms_in_contact": _vs(r.tip_poses[inc], ref.tip_poses[inc]) if inc.any() else None,
+                             "tracking_error_mm": r.report["tracking_error_mm"],
+                             "tracking_error_deg": r.report["tracking_error_deg"],
+                             "contact_force_n_max": r.report["contact_force_n"]["max"],
+                             "penetration_mm_max": r.report["penetration_mm"]["max"], "cpu_time_s": cpu,
+                             "realtime_factor_cpu": float(traj.timestamps[-1]) / cpu, "loadavg": os.getloadavg()[0]})
+                print(json.dumps(rows[-1]), flush=True)
+    free = []                                   # the free-space check (as tests/test_simulation.py, 1 s settle)
+    for law in ("implicit", "motor"):
+        for dt in (5e-3, 1e-3):
+            prm = SimParams(joint_integration=law, mass_scale=1.0, time_step_s=dt)
+            err = [float(np.linalg.norm(settle_free(q, prm, G, steps=int(round(1.0 / dt)))[:3, 3]
+                                        - fk(np.array(q, float), geometry=G)[:3, 3]) / MM) for q in MOTOR_FREE_Q]
+            free.append({"joint_integration": law, "time_step_s": dt, "tip_error_mm": err})
+            print(json.dumps(free[-1]), flush=True)
+    res = ROOT / "benchmarks" / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    (res / "simulation_motor_law.json").write_text(json.dumps({"rows": rows, "free_space": free, "dirs": dirs}, indent=1))
+    f3 = lambda x, k: "-" if x is None else f"{x[k]:.3f}"  # noqa: E731
+    md = ["# Issue #17: the joints as velocity motors solved with the contacts (benchmarks/simulation.py --motor-law)", "",
+          "`simulate.joint_integration: motor` (robot/pybullet_adapter.py): each joint a Bullet velocity motor (a "
+          "constraint row of the same LCP as the contacts) aiming at the massless spring-damper's velocity "
+          "k e / (d + k dt), torque capped at |k e| + d |omega|.  Each run against the same law's physical-mass 1 ms "
+          "run (the issue's bounds: tip p95 0.2 mm, view p95 1 deg), no step halving; in contact = frames where either "
+          "run touches the wall.  CPU time on 2 shared cores.  Command: `python benchmarks/simulation.py --motor-law "
+          + " ".join(dirs) + "`", "",
+          "| sequence | run | frames in contact | vs 1 ms: tip p95 / max mm | view p95 / max deg | in contact: tip p95 mm "
+          "/ view p95 deg | sim vs plan: median / max mm, view median deg | contact max N | realtime x (CPU) |",
+          "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        a, c = r["vs_1ms"], r["vs_1ms_in_contact"]
+        md.append(f"| {r['sequence']} | {r['run']} | {r['frames_in_contact']} / {r['frames']} | {f3(a, 'tip_mm_p95')} / "
+                  f"{f3(a, 'tip_mm_max')} | {f3(a, 'view_deg_p95')} / {f3(a, 'view_deg_max')} | {f3(c, 'tip_mm_p95')} / "
+                  f"{f3(c, 'view_deg_p95')} | {r['tracking_error_mm']['median']:.2f} / {r['tracking_error_mm']['max']:.2f}, "
+                  f"{r['tracking_error_deg']['median']:.2f} | {r['contact_force_n_max']:.4f} | {r['realtime_factor_cpu']:.1f} |")
+    md += ["", "Free space (physical mass, from straight, settled 1 s; bound 0.5 mm): tip distance from fk, mm, at q = "
+           + ", ".join(str(q) for q in MOTOR_FREE_Q), "", "| joint law | dt ms | tip error mm |", "|---|---|---|"]
+    md += [f"| {f['joint_integration']} | {f['time_step_s'] * 1e3:g} | " + " / ".join(f"{e:.3f}" for e in f["tip_error_mm"])
+           + " |" for f in free]
+    (res / "simulation_motor_law.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
 def main() -> None:
     quick = "--quick" in sys.argv
+    if "--motor-law" in sys.argv:
+        i = sys.argv.index("--motor-law")
+        motor_law([a for a in sys.argv[i + 1:] if not a.startswith("--")])
+        return
     if "--stop-at-wall-md" in sys.argv:            # rewrite the .md from the .json
         doc = json.loads((ROOT / "benchmarks" / "results" / "simulation_stop_at_wall.json").read_text())
         stop_at_wall_markdown(doc["rows"], doc["dirs"])

@@ -27,9 +27,11 @@ from .conftest import REPO, shared_path
 MM = 1e-3
 #: the library defaults these tests were written against; the code defaults now equal
 #: conf/trajectory/default.yaml (tests/test_conf_defaults.py), which starts 10 mm in, stops at 3.5 mm lumens
-#: and falls back to the nearest reachable point
+#: and falls back to the nearest reachable point; the path's own properties are tested to the route's end
+#: (stop_at_wall off: the default since session 9 ends the insertion where the scope no longer fits, which the
+#: stop_at_wall tests below check)
 LEGACY = dict(targets="leaves", max_generation=4, n=10, unreachable="error", start_offset_mm=0.0,
-              min_lumen_radius_mm=0.0)
+              min_lumen_radius_mm=0.0, stop_at_wall=False)
 
 
 def TrajectoryParams(**kw) -> _TrajectoryParams:  # noqa: N802 (stands in for the class)
@@ -483,7 +485,7 @@ def test_stop_at_wall_ends_the_insertion_where_the_tip_no_longer_fits(joint_plan
     (140 mm in); every kept frame keeps 2.5 mm; trajectory.json says where, why and how close."""
     graph, fn = narrowing_tube()
     leaf = graph.leaves()[0].id
-    full = plan_path(graph, leaf, fn, TrajectoryParams(joint_plan=joint_plan, **CONE))
+    full = plan_path(graph, leaf, fn, TrajectoryParams(joint_plan=joint_plan, stop_at_wall=False, **CONE))
     first = int(np.argmax(full.clearance < 2.5 * MM))
     assert 0 < first < len(full.timestamps) - 1
     assert abs(full.arclength[first] / MM - 140.0) < 1.0             # the cone's 2.5 mm section
@@ -517,13 +519,13 @@ PLAN_BEFORE_STOP_AT_WALL = {None: "5dc7bccc3965fd816b34d60e0291feb27c2f6bd2de7fc
 
 @pytest.mark.parametrize("joint_plan", [None, "joint"])
 def test_stop_at_wall_off_is_the_plan_of_before(joint_plan):
-    """Off (the default): the plan runs to the route's end, byte for byte the plan made before the switch
-    existed, and trajectory.json has no insertion_stop."""
+    """Off (on by default since session 9): the plan runs to the route's end, byte for byte the plan made
+    before the switch existed, and trajectory.json has no insertion_stop."""
     import hashlib
     graph, fn = narrowing_tube()
     tr = plan_path(graph, graph.leaves()[0].id, fn,
-                   TrajectoryParams(joint_plan=None if joint_plan is None else {}, **CONE))
-    assert _TrajectoryParams().stop_at_wall is False
+                   TrajectoryParams(joint_plan=None if joint_plan is None else {}, stop_at_wall=False, **CONE))
+    assert _TrajectoryParams().stop_at_wall is True                      # the default (conf/trajectory)
     assert tr.insertion_stop is None and "insertion_stop" not in tr.to_dict()
     assert tr.clearance.min() < 2.5 * MM                                # it does ask the tip into the wall
     assert hashlib.sha256(_plan_doc(tr).encode()).hexdigest() == PLAN_BEFORE_STOP_AT_WALL[joint_plan]
@@ -537,3 +539,20 @@ def test_stop_at_wall_config_errors_and_no_room_at_the_start():
     graph, fn = narrowing_tube()
     with pytest.raises(InputError, match="does not fit from the start"):       # 6 mm lumen, 4 + 2.5 needed
         plan_path(graph, graph.leaves()[0].id, fn, TrajectoryParams(stop_at_wall=True, stop_clearance_mm=4.0, **CONE))
+
+
+def test_stop_at_wall_near_the_start_is_a_short_valid_sequence():
+    """A route that narrows right after its start: stop_at_wall keeps the frames that fit (at least 2, each
+    with the scope's radius + clearance to the wall) as a short sequence with its note, a valid trajectory.json
+    (frames, timestamps from 0 at the rate, target not reached); fewer than 2 fitting frames is the one-line
+    InputError above (``room: error: ...``, exit 2)."""
+    graph, fn = narrowing_tube()
+    leaf = graph.leaves()[0].id
+    tr = plan_path(graph, leaf, fn, TrajectoryParams(stop_at_wall=True, stop_clearance_mm=3.4, **CONE))
+    n = len(tr.timestamps)
+    assert 2 <= n < 40 and tr.insertion_stop["frames_kept"] == n
+    assert np.all(-fn(tr.positions) >= 5.9 * MM)
+    assert np.allclose(tr.timestamps, np.arange(n) / tr.rate_hz)
+    doc = json.loads(json.dumps(tr.to_dict()))
+    assert len(doc["frames"]) == n and doc["target"]["reached"] is False
+    assert doc["insertion_stop"]["frames_planned"] > 10 * n

@@ -1,4 +1,4 @@
-"""The insertion stops where the plan cannot keep the scope off the wall (``trajectory.stop_at_wall``; off by default).
+"""The insertion stops where the plan cannot keep the scope off the wall (``trajectory.stop_at_wall``; on by default).
 
 A real scope cannot put its tip (radius ``scope_diameter_mm / 2``) closer to the wall than its radius: the
 wall is there.  A plan that asks for such a pose is not executable; the simulator then presses the scope

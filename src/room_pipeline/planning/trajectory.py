@@ -70,7 +70,7 @@ Pipeline of :func:`plan_path`
        limits, the scope body kept in the lumen), so the simulator
        can execute the plan; ``joint_plan`` in ``trajectory.json`` says how far it departs from
        the path.  ``clearance`` is then measured at those camera positions.
-    8. **Where the insertion ends** (``stop_at_wall``, off by default): the sequence stops before the
+    8. **Where the insertion ends** (``stop_at_wall``, on by default): the sequence stops before the
        first frame whose camera (or, with a joint plan, bending-segment backbone) is closer to the wall
        than the scope's radius + ``stop_clearance_mm`` (:mod:`.insertion_stop`); the kept frames are
        planned again in joint space; ``trajectory.json`` -> ``insertion_stop`` says where and why.

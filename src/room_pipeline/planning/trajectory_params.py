@@ -54,7 +54,7 @@ class TrajectoryParams:
     jitter_seed: int = 0
     joint_plan: Any = None               # null: camera poses on the path | mapping (JointPlanParams keys): the
                                          # poses are the forward kinematics of a joint-space plan (planning/joint_plan.py)
-    stop_at_wall: bool = False           # the insertion ends before the first frame whose tip or body is closer to the
+    stop_at_wall: bool = True            # the insertion ends before the first frame whose tip or body is closer to the
                                          # wall than the scope's radius + stop_clearance_mm (planning/insertion_stop.py)
     stop_clearance_mm: float = 0.0       # stop_at_wall: the scope's surface keeps this from the wall, mm
 

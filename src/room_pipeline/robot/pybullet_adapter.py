@@ -24,7 +24,11 @@ Scope model
     (``joint_integration: implicit``): stable PD (Tan, Liu & Turk 2011): the spring acts at
     ``theta + dt*omega`` and the damper at the velocity predicted with the joint-space mass
     matrix, so the stiff, light chain is stable at a 5 ms step.  ``explicit``:
-    ``tau = k (theta* - theta) - c dtheta/dt`` with raised link inertia (``inertia_factor``).
+    ``tau = k (theta* - theta) - c dtheta/dt`` with raised link inertia (``inertia_factor``).  ``motor`` (not
+    the default: benchmarks/results/simulation_motor_law.md): each joint is a velocity motor, a constraint row
+    solved with the contacts in Bullet's LCP (target velocity, impulse <= force x dt), aiming at the massless
+    spring-damper's velocity ``k e / (d + k dt)``, its torque capped at ``|k e| + d |omega|``: a joint the wall
+    holds presses with its whole spring at any step.
     The stable PD's torque is ``M (M + dt D)^-1 (k e - D omega)``: the spring's ``k e`` in free motion,
     but where the wall holds a joint still only the share ``M (M + dt D)^-1`` of it (its prediction
     does not know the contact), a share that grows with ``M / (dt D)``: a resting contact presses
@@ -183,6 +187,7 @@ class ScopeSim:
         self._phi_per_q1 = float(kappa(1.0, self.geometry)) * self.ds     # vertex angle per unit q1 (kappa is linear)
         self.base_pose = np.eye(4)
         self.implicit = prm.joint_integration == "implicit"
+        self.motor = prm.joint_integration == "motor"
         self.dt = prm.time_step_s
         self._pd_gain = None
         self._D_joint = np.diag(self.d)
@@ -309,6 +314,13 @@ class ScopeSim:
             js = p.getJointStates(body, joints, physicsClientId=c)
             th = np.array([j[0] for j in js])
             om = np.array([j[1] for j in js])
+            if self.motor:
+                e = self.targets - th
+                p.setJointMotorControlArray(body, joints, p.VELOCITY_CONTROL,
+                                            targetVelocities=(self.k * e / (self.d + self.k * self.dt)).tolist(),
+                                            forces=(np.abs(self.k * e) + self.d * np.abs(om)).tolist(), physicsClientId=c)
+                p.stepSimulation(physicsClientId=c)
+                continue
             if self.implicit:
                 # stable PD (Tan, Liu & Turk 2011): spring at theta + dt*omega, damper at the predicted
                 # velocity omega + dt*acc, acc = (M + dt D)^-1 (e - D omega) from the joint-space mass

@@ -37,7 +37,7 @@ class SimParams:
     linear_density_kg_m: float = 0.03       # scope mass per length
     mass_scale: float = 10.0                # simulated mass = physical x this (1 = physical)
     mass_damping_per_s: float = 0.0         # implicit: extra joint damping alpha * M (mass-proportional), 1/s
-    joint_integration: str = "implicit"     # implicit (stable PD) | explicit spring-damper torques
+    joint_integration: str = "implicit"     # implicit (stable PD) | explicit spring-damper torques | motor (velocity motors)
     inertia_factor: float = 0.0             # explicit: link rotational inertia >= factor * joint_damping * time_step_s
     joint_stiffness: float = 2.0e-2         # N m/rad, bending-segment joints
     joint_damping: float = 5.0e-4           # N m s/rad
@@ -102,8 +102,9 @@ class SimParams:
         if self.insertion_model not in INSERTION_MODELS:
             raise ConfigError(f"simulate.insertion_model must be one of {', '.join(INSERTION_MODELS)}, "
                               f"got {self.insertion_model!r}")
-        if self.joint_integration not in ("implicit", "explicit"):
-            raise ConfigError(f"simulate.joint_integration must be implicit or explicit, got {self.joint_integration!r}")
+        if self.joint_integration not in ("implicit", "explicit", "motor"):
+            raise ConfigError(f"simulate.joint_integration must be implicit, explicit or motor, "
+                              f"got {self.joint_integration!r}")
         if self.friction_model not in FRICTION_MODELS:
             raise ConfigError(f"simulate.friction_model must be one of {', '.join(FRICTION_MODELS)}, "
                               f"got {self.friction_model!r}")
