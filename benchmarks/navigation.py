@@ -76,7 +76,7 @@ def main(argv=None) -> int:
     if args.merge:
         docs = [json.loads(Path(m).read_text()) for m in args.merge]
         rows = [r for d in docs for r in d["episodes"]]
-        plan = [t for d in docs for t in d["targets"]]
+        plan = list({t["patient"]: t for d in docs for t in d["targets"]}.values())   # one entry a patient
     patients = [] if args.merge else (args.patients.split(",") if args.patients else list(bench["patients"]))
     for pid in patients:
         patient = load_patient(Path(args.output_dir), pid)

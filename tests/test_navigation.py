@@ -17,7 +17,7 @@ from room_pipeline.anatomy.centreline import CentrelineGraph, GraphBranch
 from room_pipeline.errors import ConfigError, InputError
 from room_pipeline.io.mesh import Mesh, write_obj
 from room_pipeline.navigation.closed_loop import (EpisodeParams, Patient, check_target, operator_command,
-                                                  reach_command, run_episode, start_pose, Airways)
+                                                  path_command, reach_command, run_episode, start_pose, Airways, Trace)
 from room_pipeline.navigation.lumen import TrueLumen
 from room_pipeline.navigation.perception import back_project, median_scale
 from room_pipeline.navigation.planner import PlannerParams, choose_goal, plan_path
@@ -211,6 +211,41 @@ def test_reach_command_puts_the_free_space_tip_on_a_reachable_target():
     q = reach_command(target, lambda q3: pose_at(q3), np.array([0.0, 0.0, 0.0]), g, 0.0, 0.0, 0.0)
     assert np.linalg.norm(fk(q, geometry=g)[:3, 3] - target) < 1e-4
     assert abs(q[0]) <= g.q1_max
+
+
+def test_path_command_puts_the_tip_where_the_path_crosses_its_reachable_dome():
+    """Follow-the-leader tip control: a straight path from the base's side through a reachable tip point; the
+    command's constant-curvature tip lies on the path (residual and fk distance < 0.3 mm)."""
+    g = ScopeGeometry()
+    tip = fk(np.array([-0.003, 0.7, 0.0]), geometry=g)[:3, 3]
+    d = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])
+    path = tip + np.arange(-0.01, 0.03, 2.5e-4)[:, None] * d
+    q, resid = path_command(path, lambda q3: pose_at(q3), np.zeros(3), g, 0.0, 0.0, 0.0)
+    p = fk(q, geometry=g)[:3, 3]
+    off = np.linalg.norm(np.cross(p - tip, d))
+    assert resid < 3e-4 and off < 3e-4 and abs(q[0]) <= g.q1_max
+
+
+def test_airways_distance_and_tip_control_choice():
+    a = Airways(two_branch_graph())
+    assert a.distance(np.array([0.002, 0.0, 0.05])) == pytest.approx(0.002)
+    with pytest.raises(ConfigError, match="tip_control"):
+        EpisodeParams(tip_control="wiggle")
+    with pytest.raises(ConfigError, match="retract_force_n"):
+        EpisodeParams(retract_force_n=-1.0)
+
+
+def test_forward_trace_ignores_a_sideways_sweep_of_the_tip():
+    """A roll of the bent tip sweeps it sideways: with its view direction the shaft's path does not grow."""
+    tr, plain = Trace(pose_at(0.0)), Trace(pose_at(0.0))
+    z = np.array([0.0, 0.0, 1.0])
+    for k in range(1, 11):                                  # 10 mm sideways, 1 mm steps
+        tr.extend(np.array([0.0, k * 1e-3, 0.0]), z)
+        plain.extend(np.array([0.0, k * 1e-3, 0.0]))
+    assert tr.s_end == pytest.approx(0.2) and plain.s_end > 0.208          # the plain trace grows by the sweep
+    tr.extend(np.array([0.0, 0.01, 0.005]), z)              # 5 mm ahead: counted as 5 mm
+    assert tr.s_end == pytest.approx(0.205)
+    assert np.allclose(tr.route.frame(0.205)[:3, 3], [0.0, 0.01, 0.005])
 
 
 def two_branch_graph():

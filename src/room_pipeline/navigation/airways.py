@@ -57,6 +57,10 @@ class Airways:
         b = int(self.branch_of[i])
         return b, float(self.cum[b][self.index_of[i]])
 
+    def distance(self, p: np.ndarray) -> float:
+        """Distance (m) from ``p`` to the nearest centreline point of any branch."""
+        return float(self.tree.query(p)[0])
+
     def route(self, target: int) -> list[int]:
         return [b.id for b in self.graph.path_to(target)]
 

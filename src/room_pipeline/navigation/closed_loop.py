@@ -20,6 +20,15 @@ Episode (one patient, one target branch of the centreline graph)
     at ``physics_step_s``) integrates the control period against the decimated
     lumen (``collision_model.obj``).
 
+Switches (default off; ``tip_control: path`` is the better tracker, see benchmarks/results/navigation.md)
+    ``tip_control: path``: :func:`~room_pipeline.navigation.tip_control.path_command` puts the tip on the
+    route / plan / dark ray where it crosses the dome of reachable tips (the look-ahead is then tied to the
+    segment's length; ``lookahead_mm`` is only the insertion preview); ``retract_force_n > 0``: retract at
+    ``retract_mm_s`` while the last period's peak contact force exceeded it; ``forward_trace``: the shaft's
+    path grows only by the tip's advance along its view (a roll sweep of the bent tip is not shaft motion).
+    Logged per step: ``route_error_mm`` (tip to the route's centreline), ``trace_lag_mm`` (shaft path length
+    minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip minus the arc model's tip).
+
 Shaft (follow-the-leader)
     The simulate stage constrains the shaft to the *planned* route; in closed loop there is none, so the
     bending-segment base slides along the path the tip itself has traced (a rotation-minimising frame
@@ -39,7 +48,10 @@ Policies
 
 Outcome
     ``reached`` when the tip's nearest centreline point is in the target branch at >= ``reach_fraction``
-    of its length; ``wrong_branch`` when it is ``wrong_branch_mm`` into a branch off the route;
+    of its length; ``wrong_branch`` when it is ``wrong_branch_mm`` into a branch off the route and at least
+    ``wrong_branch_gap_mm`` nearer that branch's centreline than the route's (siblings' centrelines run within
+    a fraction of a mm of each other for several mm past a bifurcation: a tip on the route is not in the
+    wrong branch because a sibling's centreline passes nearer);
     ``stalled`` when the insertion gained < 1 mm over ``stall_time_s``; ``timeout`` at ``max_time_s``.
     Reported: time (s), tip path length (mm), physics steps in contact, peak summed normal contact force
     (N, every physics step), minimum distance from the scope's backbone to the TRUE lumen surface minus
@@ -62,7 +74,7 @@ from ..errors import ConfigError
 from ..io.mesh import Mesh
 from ..render.camera import CameraIntrinsics
 from ..robot.actuation import Actuator, CommandSignal, sample_delay
-from ..robot.controller import _wrap, rate_limit, regularise_roll
+from ..robot.controller import rate_limit
 from ..robot.kinematics import ScopeGeometry
 from ..geometry.rotations import rz as _rz
 from ..robot.pybullet_adapter import ScopeSim
@@ -72,6 +84,7 @@ from .airways import COMMANDS, Airways, Patient, check_target, generation_target
 from .lumen import TrueLumen
 from .perception import back_project
 from .planner import PlannerParams, choose_goal, plan_path
+from .tip_control import _model_error, path_command, reach_command  # noqa: F401
 
 MM = 1e-3
 POLICIES = ("depth", "darkest", "oracle")
@@ -91,22 +104,34 @@ class EpisodeParams:
     start_offset_mm: float = 60.0       # start this far down the trachea (>= the 50 mm bending segment)
     reach_fraction: float = 0.5         # success: this far along the target branch
     wrong_branch_mm: float = 5.0        # failure: this far into a branch off the route
+    wrong_branch_gap_mm: float = 1.0    # ... and this much nearer its centreline than the route's (sibling
+                                        # centrelines run together for mm after a bifurcation)
     stall_time_s: float = 8.0           # failure: < 1 mm of insertion gained over this long
     physics_step_s: float = 0.005       # replaces simulate.time_step_s: 10 ms is unstable in pressed contact
                                         # (README, Pitfalls: the pressed probe reads 19 N for 0.5 N); measured
                                         # here: 10 ms tunnelled at a carina (57 N), 5 ms did not
     slow_factor: float = 0.5            # insertion speed factor while the plan is not collision-free
     dark_quantile: float = 0.05         # darkest: pixels at or below this luminance quantile form the dark regions
+    tip_control: str = "point"          # point: bend toward the look-ahead point; path: put the tip on the path
+    retract_force_n: float = 0.0        # > 0: retract while the last period's peak contact force exceeded this (N)
+    retract_mm_s: float = 2.0           # ... at this speed
+    forward_trace: bool = False         # the shaft's path grows by the tip's advance along its view only
     seed: int = 0                       # actuation delay draw (and the planner's samples: planner.seed + step)
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
             raise ConfigError(f"navigate.episode.policy must be one of {POLICIES}, got {self.policy!r}")
         for name in ("control_rate_hz", "max_time_s", "speed_mm_s", "fov_deg", "lookahead_mm", "start_offset_mm",
-                     "wrong_branch_mm", "stall_time_s", "physics_step_s"):
+                     "wrong_branch_mm", "stall_time_s", "physics_step_s", "retract_mm_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"navigate.episode.{name} must be > 0, got {v!r}")
+        for name in ("wrong_branch_gap_mm", "retract_force_n"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ConfigError(f"navigate.episode.{name} must be >= 0, got {v!r}")
+        if self.tip_control not in ("point", "path"):
+            raise ConfigError(f"navigate.episode.tip_control must be point or path, got {self.tip_control!r}")
         if self.image_px < 8:
             raise ConfigError("navigate.episode.image_px must be >= 8")
         if not 0 < self.reach_fraction <= 1 or not 0 < self.dark_quantile < 1:
@@ -131,11 +156,19 @@ class Trace:
         self.X = [x.copy() for _ in range(n + 1)]
         self.step = step
         self.s_end = n * step
+        self.S = [k * step for k in range(n + 1)]
         self._route: Route | None = None
 
-    def extend(self, p: np.ndarray) -> None:
+    def extend(self, p: np.ndarray, z: np.ndarray | None = None) -> None:
+        """Append the tip position ``p`` (m) once it is >= ``step`` past the last point.
+
+        With the tip's view direction ``z``, only the advance along it counts (for the test and as the arc
+        length added): a bent tip swept sideways by a roll moves the tip, not the shaft, so the shaft's arc
+        length stays in step with the insertion instead of running ahead of it by the sweep.
+        """
         d = np.linalg.norm(p - self.P[-1])
-        if d < self.step:
+        ds = d if z is None else float((p - self.P[-1]) @ z)
+        if ds < self.step:
             return
         t = (p - self.P[-1]) / d
         x = self.X[-1] - (self.X[-1] @ t) * t
@@ -144,7 +177,8 @@ class Trace:
             return
         self.P.append(p.copy())
         self.X.append(x / nx)
-        self.s_end += d
+        self.S.append(self.S[-1] + ds)
+        self.s_end += ds
         self._route = None
 
     @property
@@ -152,7 +186,7 @@ class Trace:
         if self._route is None:
             P = np.array(self.P)
             X = np.array(self.X)
-            s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+            s = np.array(self.S)
             R = np.zeros((len(P), 3, 3))
             R[:, :, 0] = X
             self._route = Route(P, s, R)
@@ -195,40 +229,6 @@ class _Eyes:
         lin = out["rgb_linear"].astype(np.float64)
         lum = 0.2126 * lin[..., 0] + 0.7152 * lin[..., 1] + 0.0722 * lin[..., 2]
         return np.where(out["hit"], lum, 0.0)  # no hit (beyond the far plane) is the darkest
-
-
-def reach_command(target_world: np.ndarray, base_frame, q_prev: np.ndarray, geometry: ScopeGeometry,
-                  advance_m: float, hold_fraction: float = 0.05, free_fraction: float = 0.15,
-                  preview_m: float = 0.0) -> np.ndarray:
-    """Joint command inserting ``advance_m`` more and bending the tip as near ``target_world`` as it can get
-    once the insertion has gone ``preview_m`` further (the bend that will have brought the tip there).
-
-    ``base_frame(q3)``: world pose of the bending-segment base at insertion ``q3`` (roll 0; z = insertion).
-    At the new insertion the constant-curvature tip lies at ``Rot_z(q2) [0, -l (1 - cos t)/t, l sin t / t]``
-    (``t = theta = -q1 / (2 gamma)``; :mod:`room_pipeline.robot.kinematics`) in that frame: ``q2`` puts the
-    bending plane through the target (``atan2(x, -y)``), ``theta`` (grid over ``[0, theta_max]``, 0.5 mrad)
-    minimises the distance to it.  Near zero bending the roll is held (:func:`~room_pipeline.robot.controller.
-    regularise_roll`, the simulate config's fractions).  Insertion is commanded, the bend follows the target:
-    the position-only tip control of a follow-the-leader scope.
-    """
-    q3 = float(q_prev[2]) + advance_m
-    B = base_frame(float(q_prev[2]) + max(advance_m, preview_m))
-    t = B[:3, :3].T @ (np.asarray(target_world, float) - B[:3, 3])
-    r, z = math.hypot(t[0], t[1]), float(t[2])
-    l = geometry.l
-    th = _THETA_GRID * geometry.theta_max
-    lat = l * np.where(th > 1e-9, (1 - np.cos(th)) / np.maximum(th, 1e-12), 0.0)
-    ax = l * np.where(th > 1e-9, np.sin(th) / np.maximum(th, 1e-12), 1.0)
-    theta = float(th[np.argmin((lat - r) ** 2 + (ax - z) ** 2)])
-    q2 = float(q_prev[1]) + _wrap(math.atan2(t[0], -t[1]) - float(q_prev[1])) if r > 1e-9 else float(q_prev[1])
-    q = np.array([-2.0 * geometry.gamma * theta, q2, q3])
-    q[0] = max(-geometry.q1_max, min(geometry.q1_max, q[0]))
-    if hold_fraction > 0 or free_fraction > 0:
-        q = regularise_roll(q, float(q_prev[1]), geometry.q1_max, hold_fraction, free_fraction, project=False)
-    return q
-
-
-_THETA_GRID = np.linspace(0.0, 1.0, 2001)
 
 
 def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: PlannerParams,
@@ -289,6 +289,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
         q3_hist = [(0.0, q[2])]
         outcome = "timeout"
         tip_prev = None
+        f_period = 0.0
         path_len = 0.0
         frames = []
         k = 0
@@ -301,7 +302,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             if tip_prev is not None:
                 path_len += float(np.linalg.norm(p_tip - tip_prev))
             tip_prev = p_tip.copy()
-            trace.extend(p_tip)
+            trace.extend(p_tip, tip[:3, 2] if params.forward_trace else None)
             sd = lumen.signed_distance(sim.sample_points())
             min_clear = min(min_clear, float((-sd).min()) - sim.radius)
             branch, s_in = airways.locate(p_tip)
@@ -310,7 +311,9 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             if branch == target and s_in >= params.reach_fraction * airways.cum[target][-1]:
                 outcome = "reached"
                 break
-            if branch not in route_ids and s_in >= params.wrong_branch_mm * MM:
+            d_route = float(route_tree.query(p_tip)[0])
+            if (branch not in route_ids and s_in >= params.wrong_branch_mm * MM
+                    and d_route - airways.distance(p_tip) >= params.wrong_branch_gap_mm * MM):
                 outcome = "wrong_branch"
                 break
             if t >= params.stall_time_s:
@@ -320,13 +323,20 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                     break
             word = operator_command(airways, target, branch, tip, cam)
             c0 = time.process_time()
-            info: dict[str, Any] = {"t": round(t, 6), "branch": branch, "command": word}
+            path = None
+            defl = _model_error(act(t), trace.route.frame, geometry, p_tip)
+            info: dict[str, Any] = {"t": round(t, 6), "branch": branch, "command": word,
+                                    "route_error_mm": round(d_route * 1e3, 3),
+                                    "trace_lag_mm": round((trace.s_end - float(q[2]) - geometry.l) * 1e3, 3),
+                                    "tip_deflection_mm": round(float(np.linalg.norm(defl)) * 1e3, 3)}
             if params.policy == "oracle":
                 _, i = route_tree.query(p_tip)
                 s_goal = route_s[i] + params.lookahead_mm * MM
                 j = int(min(len(route_s) - 2, np.searchsorted(route_s, s_goal)))
                 tgt = route_P[j]
                 tan = route_P[j + 1] - route_P[j]
+                ahead = route_P[i:]
+                path = ahead[route_s[i:] - route_s[i] <= 2 * geometry.l]
                 c1 = time.process_time()
             elif params.policy == "depth":
                 depth = eyes.depth(tip) if depth_source is None else depth_source(eyes, tip)
@@ -342,6 +352,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                     pc, tc = pl.at(params.lookahead_mm * MM)
                     tgt = tip[:3, :3] @ pc + p_tip
                     tan = tip[:3, :3] @ tc
+                    path = pl.to_world(tip)[0]
                     info["plan"] = {"free": pl.collision_free, "length_mm": round(pl.length * 1e3, 3),
                                     "goal_depth_mm": round(goal.depth * 1e3, 3), "regions": goal.regions}
                     if record_frames:
@@ -352,24 +363,35 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 ray = _darkest_ray(lum, cam, params.dark_quantile, COMMANDS.get(word) if word else None)
                 tan = tip[:3, :3] @ ray
                 tgt = p_tip + params.lookahead_mm * MM * tan
+                path = p_tip + np.arange(0.0, 2 * geometry.l, 1e-3)[:, None] * tan
             tan = tan / np.linalg.norm(tan)
             q_prev = signal(t)
             # push at the insertion speed, bend the tip toward the target
             speed = params.speed_mm_s * MM * (1.0 if info.get("plan", {}) is None or
                                               (info.get("plan") or {}).get("free", True) else params.slow_factor)
-            q_new = reach_command(tgt, trace.route.frame, q_prev, geometry, speed * ctrl_dt,
-                                  sim_params.roll_hold_q1_fraction, sim_params.roll_free_q1_fraction,
-                                  preview_m=params.lookahead_mm * MM)
+            if params.retract_force_n > 0 and f_period > params.retract_force_n:
+                speed = -params.retract_mm_s * MM        # an operator backs off a pressing wall, then steers again
+            if params.tip_control == "path" and path is not None and len(path):
+                q_new, resid = path_command(path, trace.route.frame, q_prev, geometry, speed * ctrl_dt,
+                                            sim_params.roll_hold_q1_fraction, sim_params.roll_free_q1_fraction,
+                                            preview_m=params.lookahead_mm * MM)
+                info["path_residual_mm"] = round(resid * 1e3, 3)
+            else:
+                q_new = reach_command(tgt, trace.route.frame, q_prev, geometry, speed * ctrl_dt,
+                                      sim_params.roll_hold_q1_fraction, sim_params.roll_free_q1_fraction,
+                                      preview_m=params.lookahead_mm * MM)
             q = rate_limit(q_new, q_prev, ctrl_dt, max_rate)
             c2 = time.process_time()
             signal.add(t + ctrl_dt, q)
             sim.update_friction()
+            f_period = 0.0
             for j in range(n_sub):
                 tj = t + (j + 1) * h
                 apply(act(tj), h, reset=(j == 0))
                 sim.step(1)
                 f, _ = sim.contacts()
                 peak_force = max(peak_force, f)
+                f_period = max(f_period, f)
                 contact_steps += int(f > 0)
                 steps += 1
             c3 = time.process_time()
