@@ -85,6 +85,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
+import sys
 import tempfile
 import weakref
 from pathlib import Path
@@ -222,6 +223,22 @@ class CyclesSettings:
 IES_UNIT_CD = 1000.0 / 70.6
 
 
+def import_bpy():
+    """``import bpy`` (the only one of room-pipeline), also in a worker spawned by a process that had imported bpy.
+
+    Importing bpy puts Blender's script folders (``.../site-packages/bpy/<ver>/scripts/...``) on
+    ``sys.path``; a spawned process inherits that ``sys.path``, so its ``import bpy`` would find
+    Blender's inner ``bpy`` package (which needs the ``_bpy`` built-in) instead of the bpy module.
+    Until bpy is imported in this process, those folders are dropped.
+    """
+    if "bpy" not in sys.modules:
+        marker = f"{os.sep}site-packages{os.sep}bpy{os.sep}"
+        sys.path[:] = [d for d in sys.path if marker not in d]
+    import bpy
+
+    return bpy
+
+
 def ies_profile(mu: float, n: int = 181) -> str:
     """An IES LM-63 photometric file with candela ``cos(theta)^mu`` (theta from the light's axis, 0..90 deg;
     0 beyond) times :data:`IES_UNIT_CD`: the tip light's angular emission
@@ -290,8 +307,7 @@ class CyclesRenderer:
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
-        import bpy  # the only bpy import of room-pipeline
-
+        bpy = import_bpy()
         self._bpy = bpy
         sc = self.scene
         st = self.settings
@@ -681,7 +697,7 @@ def osl_albedo_at(points_world: np.ndarray, tex, base_color, airway: np.ndarray 
     comparison with :func:`~room_pipeline.render.texture.mucosa_albedo`.
     ``airway``: optional (N, 4) coordinates.  Resets the process's Blender session.
     """
-    import bpy
+    bpy = import_bpy()
 
     p = np.asarray(points_world, dtype=np.float32).reshape(-1, 3)
     n = len(p)
