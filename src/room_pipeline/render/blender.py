@@ -93,6 +93,7 @@ from typing import Iterable
 
 import numpy as np
 
+from ..config.params import params_from_dict
 from ..errors import ConfigError
 from .scene import Scene
 
@@ -165,6 +166,13 @@ class CyclesSettings:
     texture: str = "per_point"
 
     def __post_init__(self) -> None:
+        if self.exposure is not None:           # stops: a plain float (so to_dict() is JSON), or null
+            try:
+                if isinstance(self.exposure, bool):
+                    raise TypeError
+                object.__setattr__(self, "exposure", float(self.exposure))
+            except (TypeError, ValueError):
+                raise ConfigError(f"cycles.exposure: cannot read {self.exposure!r} as a number of stops") from None
         if self.samples < 1:
             raise ConfigError(f"cycles.samples must be >= 1, got {self.samples}")
         if not 0.0 <= self.adaptive_threshold < 1.0:
@@ -187,30 +195,9 @@ class CyclesSettings:
 
     @staticmethod
     def from_dict(d: dict | None) -> "CyclesSettings":
-        """Build from a config mapping; an unknown key raises :class:`ConfigError` naming it."""
-        d = dict(d or {})
-        fields = {f.name: f for f in dataclasses.fields(CyclesSettings)}
-        unknown = sorted(set(d) - set(fields))
-        if unknown:
-            raise ConfigError(f"unknown cycles setting(s): {', '.join(unknown)} (known: {', '.join(fields)})")
-        kw = {}
-        for k, v in d.items():
-            if k == "exposure":
-                if v is not None:
-                    try:
-                        v = float(v)
-                    except (TypeError, ValueError):
-                        raise ConfigError(f"cycles.exposure: cannot read {v!r} as a number of stops") from None
-                kw[k] = v
-                continue
-            typ = type(getattr(CyclesSettings(), k))
-            try:
-                kw[k] = bool(v) if typ is bool and isinstance(v, bool) else typ(v)
-            except (TypeError, ValueError):
-                raise ConfigError(f"cycles.{k}: cannot read {v!r} as {typ.__name__}") from None
-            if typ is bool and not isinstance(v, bool):
-                raise ConfigError(f"cycles.{k} must be true or false, got {v!r}")
-        return CyclesSettings(**kw)
+        """Build from a config mapping (:func:`~room_pipeline.config.params.params_from_dict`, section ``cycles``,
+        then :meth:`__post_init__`); an unknown key or a bad value raises :class:`ConfigError` naming it."""
+        return params_from_dict(CyclesSettings, d, "cycles")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
