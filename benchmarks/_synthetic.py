@@ -47,3 +47,26 @@ def capsule_tree(generations: int = 4, r0: float = 4e-3, length0: float = 30e-3,
 def rasterise(tree: AirwayTree, spacing, margin: float = 5e-3) -> tuple[Volume, Volume]:
     """(true mask uint8, true SDF float32 metres) at voxel centres of a grid around the tree."""
     return tree.rasterise(spacing, margin)
+
+
+def flat_trachea_mask(half_x: float = 12.0, half_y: float = 5.0, tilt_deg: float = 0.0, h: float = 0.7,
+                      y_extent: float = 10.0) -> Volume:
+    """A fibrotic-lung tree (as CASE073), all lengths in mm: the trachea has a ``2 half_x`` x ``2 half_y``
+    elliptic cross-section, leans ``tilt_deg`` toward +x and runs out of the top of the volume (its medial surface
+    is a sheet when flat, on which the skeleton runs parallel lines); main bronchi of 4.5 mm radius from the carina
+    at z = -45.  Grid: x in [-45, 45], y in [-y_extent, y_extent], z in [-75, 0], spacing ``h``; affine in metres.
+    Used by tests/test_medial_axis.py and benchmarks/anatomy_trachea_aspect.py."""
+    mm = 1e-3
+    x = np.arange(-45, 45.01, h)
+    y = np.arange(-y_extent, y_extent + 0.01, h)
+    z = np.arange(-75, 0.01, h)
+    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
+    xa = np.tan(np.deg2rad(tilt_deg)) * (Z + 45)
+    m = (Z >= -45) & (((X - xa) / half_x) ** 2 + (Y / half_y) ** 2 <= 1.0)
+    for sx in (-1.0, 1.0):
+        d = np.array([sx * np.sin(0.6), 0.0, -np.cos(0.6)])
+        t = np.clip((X * d[0] + (Z + 45) * d[2]), 0, 35)
+        m |= (X - t * d[0]) ** 2 + Y ** 2 + (Z + 45 - t * d[2]) ** 2 <= 4.5 ** 2
+    aff = np.diag([h * mm] * 3 + [1.0])
+    aff[:3, 3] = [x[0] * mm, y[0] * mm, z[0] * mm]
+    return Volume(m.astype(np.uint8), aff)

@@ -34,7 +34,7 @@ from room_pipeline.anatomy.sdf import SdfParams, compute_sdf
 from room_pipeline.io.volume import Volume, read_volume
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _synthetic import REAL_MASKS  # noqa: E402
+from _synthetic import REAL_MASKS, flat_trachea_mask  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -43,22 +43,9 @@ REAL = REAL_MASKS
 MM = 1e-3
 
 
-def _synthetic_tree(half_x: float, half_y: float, tilt_deg: float = 0.0, h: float = 0.7) -> Volume:
-    """A trachea of a 2 half_x x 2 half_y mm elliptic cross-section leaning ``tilt_deg`` toward +x, cut by the
-    volume's top, carina at z = -45 mm, main bronchi of 4.5 mm radius (as tests/test_medial_axis.py)."""
-    x = np.arange(-45, 45.01, h)
-    y = np.arange(-12, 12.01, h)
-    z = np.arange(-75, 0.01, h)
-    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
-    xa = np.tan(np.deg2rad(tilt_deg)) * (Z + 45)
-    m = (Z >= -45) & (((X - xa) / half_x) ** 2 + (Y / half_y) ** 2 <= 1.0)
-    for sx in (-1.0, 1.0):
-        d = np.array([sx * np.sin(0.6), 0.0, -np.cos(0.6)])
-        t = np.clip((X * d[0] + (Z + 45) * d[2]), 0, 35)
-        m |= (X - t * d[0]) ** 2 + Y ** 2 + (Z + 45 - t * d[2]) ** 2 <= 4.5 ** 2
-    aff = np.diag([h * MM] * 3 + [1.0])
-    aff[:3, 3] = [x[0] * MM, y[0] * MM, z[0] * MM]
-    return Volume(m.astype(np.uint8), aff)
+def _synthetic_tree(half_x: float, half_y: float, tilt_deg: float = 0.0) -> Volume:
+    """:func:`_synthetic.flat_trachea_mask` (the tests' flattened trachea) on a y extent of +-12 mm."""
+    return flat_trachea_mask(half_x, half_y, tilt_deg, y_extent=12.0)
 
 
 SYNTH = {"round r6": (6.0, 6.0), "round r8": (8.0, 8.0), "16x14": (8.0, 7.0), "20x12": (10.0, 6.0),

@@ -6,7 +6,7 @@
 
 ``RUN`` is the folder a run was made from: its ``data/output`` (the dataset, ``output_dir``) and
 ``reports/`` (the tables stage's ``evaluate.tables.output_dir``) are listed, every regular file with its
-relative path, sha256 and size (:func:`room_pipeline.execution.manifest.sha256_file`).  Left out of the
+relative path, sha256 and size (:func:`room_pipeline.io.hashing.sha256_file`).  Left out of the
 listing: the run records ``data/output/manifest.json`` and ``manifest.*.json`` beside them (they hold the
 config, library versions and platform; their ``files`` and ``config`` are compared apart, with
 :func:`room_pipeline.execution.manifest.compare_manifests`).
@@ -37,7 +37,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from room_pipeline.execution.manifest import compare_manifests, sha256_file  # noqa: E402
+from room_pipeline.execution.manifest import compare_manifests  # noqa: E402
+from room_pipeline.io.hashing import sha256_file  # noqa: E402
 from room_pipeline.io.atomic import write_json, write_text  # noqa: E402
 from room_pipeline.io.metrics import TIMING_KEYS, TIMING_SUFFIX  # noqa: E402
 

@@ -3,7 +3,9 @@
 
 A stage's code is the import closure, inside ``src/room_pipeline``, of the CLI
 (which dispatches) and of ``stages/<name>.py``, including imports made inside
-functions.  dvc.yaml lists it package by package (:func:`package_deps`).  Usage:
+functions, except the bodies of :data:`CLI_RUN_ONLY` (``room run``'s runner: it starts ``room stage`` in
+subprocesses, so its imports, e.g. the manifest writer, are no code of a stage).  dvc.yaml lists it package by
+package (:func:`package_deps`).  Usage:
 ``python scripts/stage_deps.py segment``.  The test suite checks that every stage in dvc.yaml lists
 exactly this set, and that it covers every module Python really imports for the stage.
 """
@@ -16,6 +18,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
 PKG = "room_pipeline"
+#: functions of ``room_pipeline/cli.py`` that ``room stage`` never calls (the `room run` / multirun runner)
+CLI_RUN_ONLY = frozenset({"run_pipeline", "multirun"})
 
 
 def _module_file(mod: str) -> Path | None:
@@ -31,7 +35,12 @@ def _imports(mod: str, path: Path) -> set[str]:
     is_pkg = path.name == "__init__.py"
     package = mod if is_pkg else mod.rpartition(".")[0]
     found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    skip = {id(n) for f in tree.body if mod == f"{PKG}.cli" and isinstance(f, ast.FunctionDef)
+            and f.name in CLI_RUN_ONLY for n in ast.walk(f)}
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names if a.name.split(".")[0] == PKG)
         elif isinstance(node, ast.ImportFrom):

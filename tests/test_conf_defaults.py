@@ -28,6 +28,7 @@ TABLE = [
     ("room_pipeline.anatomy.mesh", "MeshParams", "mesh/default.yaml", ""),
     ("room_pipeline.anatomy.medial_axis", "MedialAxisParams", "medial_axis/default.yaml", ""),
     ("room_pipeline.planning.trajectory_params", "TrajectoryParams", "trajectory/default.yaml", ""),
+    ("room_pipeline.planning.joint_plan", "JointPlanParams", "trajectory/default.yaml", "joint_plan"),
     ("room_pipeline.robot.sim_params", "SimParams", "simulate/default.yaml", ""),
     ("room_pipeline.stages.render", "RenderParams", "render/default.yaml", ""),
     ("room_pipeline.render.texture", "MucosaTexture", "render/default.yaml", "texture"),
@@ -57,8 +58,11 @@ EXCEPTIONS = {
     ("DepthParams", "hf"): "the Hugging Face models are named by conf/ only (local folders, nothing downloaded)",
     ("DepthParams", "external"): "None and {} both mean no external method",
     ("TrainParams", "simcol_dir"): "conf/ points at this checkout's ../shared data; a library default cannot",
-    ("TrajectoryParams", "joint_plan"): "code None = the centreline plan (library callers); conf turns the joint "
-                                        "plan on (enabled: true) and carries its settings, checked by JointPlanParams",
+}
+#: conf keys that are no field of the row's dataclass, on purpose: (dataclass, key) -> why
+CONF_ONLY = {
+    ("JointPlanParams", "enabled"): "read by TrajectoryParams (false: the centreline plan, the section's settings "
+                                    "still checked); not a parameter of the joint planner",
 }
 #: the photoreal default of issue #15 (conf/render, branch s7_realism) whose code defaults live in stages/render.py,
 #: which that branch does not edit (the stages branch moves RenderParams): port the conf values into RenderParams
@@ -109,7 +113,7 @@ def drifts(module: str, cls_name: str, file: str, dotted: str) -> list[str]:
               row[3] != dotted and row[3].count(".") == (dotted.count(".") + 1 if dotted else 0)}
     out = []
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    for key in sorted(set(conf) - set(fields)):
+    for key in sorted(set(conf) - set(fields) - {k for c, k in CONF_ONLY if c == cls_name}):
         out.append(f"{file}:{dotted or '<root>'}.{key}: in conf/, not a field of {cls_name}")
     for name, f in fields.items():
         if name in nested:            # a nested section: compared by its own row

@@ -642,7 +642,7 @@ def test_render_stage_execution_params():
 def test_render_stage_cycles_bytes_do_not_depend_on_the_executor(tmp_path):
     """Cycles RGB (exposure chosen once in the driver, Cycles threads = cores / workers) in worker processes.
 
-    The driver imported bpy first: a spawned worker must still import it (see room_pipeline.render.sequence.drop_inherited_bpy_paths).
+    The driver imported bpy first: a spawned worker must still import it (see room_pipeline.render.blender.import_bpy).
     """
     pytest.importorskip("bpy")
     from tests.test_dataset import FOV, render_sequence

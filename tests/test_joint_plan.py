@@ -125,13 +125,13 @@ def test_trajectory_json_carries_the_plan_and_simulate_reads_it(planned, tmp_pat
 
 
 def test_bad_joint_plan_config_is_one_config_error():
-    with pytest.raises(ConfigError, match="unknown key 'nope'"):
+    with pytest.raises(ConfigError, match="unknown key 'trajectory.joint_plan.nope'"):
         TrajectoryParams(joint_plan={"nope": 1.0})
     with pytest.raises(ConfigError, match="direction_weight_mm"):
         TrajectoryParams(joint_plan={"direction_weight_mm": -1.0})
     with pytest.raises(ConfigError, match="body_points"):
         TrajectoryParams(joint_plan={"body_points": 1})
-    with pytest.raises(ConfigError, match="max_passes must be an integer"):
+    with pytest.raises(ConfigError, match="max_passes: expected int"):
         TrajectoryParams(joint_plan={"max_passes": 1.5})
     with pytest.raises(ConfigError, match="roll_hold_margin"):
         TrajectoryParams(joint_plan={"roll_hold_q1_fraction": 0.9, "roll_hold_margin": 0.2})

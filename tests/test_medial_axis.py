@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,9 @@ from room_pipeline.evaluate.centreline import centreline_metrics
 from room_pipeline.io.volume import Volume, read_volume
 
 from .conftest import REPO, shared_path
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+from _synthetic import flat_trachea_mask  # noqa: E402  (shared with benchmarks/anatomy_trachea_aspect.py)
 
 MM = 1e-3
 SP = 0.5 * MM
@@ -588,25 +592,6 @@ def test_root_is_the_trachea_among_many_small_islands(n_islands):
     assert g.root.length > 25 * MM and len(g.children(g.root.id)) >= 2
 
 
-def _flat_trachea_mask(half_x: float = 12.0, half_y: float = 5.0, tilt_deg: float = 0.0, h: float = 0.7) -> Volume:
-    """A fibrotic-lung tree (as CASE073): the trachea is flattened to a ``2 half_x`` x ``2 half_y`` mm elliptic
-    cross-section, leans ``tilt_deg`` toward +x and runs out of the top of the volume; its medial surface is a
-    sheet, on which the skeleton runs parallel lines.  Main bronchi of 4.5 mm radius from the carina at z = -45."""
-    x = np.arange(-45, 45.01, h)
-    y = np.arange(-10, 10.01, h)
-    z = np.arange(-75, 0.01, h)
-    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
-    xa = np.tan(np.deg2rad(tilt_deg)) * (Z + 45)
-    m = (Z >= -45) & (((X - xa) / half_x) ** 2 + (Y / half_y) ** 2 <= 1.0)
-    for sx in (-1.0, 1.0):
-        d = np.array([sx * np.sin(0.6), 0.0, -np.cos(0.6)])
-        t = np.clip((X * d[0] + (Z + 45) * d[2]), 0, 35)
-        m |= (X - t * d[0]) ** 2 + Y ** 2 + (Z + 45 - t * d[2]) ** 2 <= 4.5 ** 2
-    aff = np.diag([h * MM] * 3 + [1.0])
-    aff[:3, 3] = [x[0] * MM, y[0] * MM, z[0] * MM]
-    return Volume(m.astype(np.uint8), aff)
-
-
 FLAT = {"24x10": (12.0, 5.0, 0.0), "20x12": (10.0, 6.0, 0.0), "24x10_tilted_20deg": (12.0, 5.0, 20.0),
         "20x12_tilted_20deg": (10.0, 6.0, 20.0)}
 
@@ -619,7 +604,7 @@ def test_root_is_the_flattened_tracheas_cut_end(case):
     cross-section and the sheet's cross-sections along the first path are taken (``_trachea_sheet``): the
     route starts on the trachea's axis at the cut and the trachea is one branch down to the carina."""
     half_x, half_y, tilt = FLAT[case]
-    vol = _flat_trachea_mask(half_x, half_y, tilt)
+    vol = flat_trachea_mask(half_x, half_y, tilt)
     res = extract_medial_axis(compute_sdf(vol, SdfParams()), MedialAxisParams())
     g = res.graph
     check_tree(g)
@@ -653,7 +638,7 @@ def test_flattened_trachea_switch_measures_the_cross_section(case, expected):
 
     name, _, tilt = case.partition("_tilted_")
     hx, hy = {"round r6": (6.0, 6.0), "16x14": (8.0, 7.0), "20x12": (10.0, 6.0), "24x10": (12.0, 5.0)}[name]
-    vol = _flat_trachea_mask(hx, hy, float(tilt[:-3]) if tilt else 0.0)
+    vol = flat_trachea_mask(hx, hy, float(tilt[:-3]) if tilt else 0.0)
     rep = extract_medial_axis(compute_sdf(vol, SdfParams()), MedialAxisParams()).report
     assert rep["trachea_aspect_ratio"] == pytest.approx(max(expected, 1 / expected), rel=0.06), rep
     assert rep["root_centred"] is bool(max(expected, 1 / expected) > FLAT_ASPECT)

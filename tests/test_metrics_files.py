@@ -40,17 +40,17 @@ def test_empty_and_timing_free_metrics():
 
 def test_write_metrics_writes_both_files_deterministically(tmp_path):
     paths = PatientPaths(tmp_path, "p")
-    write_metrics(paths, "evaluate_depth_sequence_000", {**DOC, "nan_metric": math.nan})
-    m, t = paths.metrics("evaluate_depth_sequence_000"), paths.timings("evaluate_depth_sequence_000")
+    write_metrics(paths, "evaluate_depth", {**DOC, "nan_metric": math.nan}, sequence="sequence_000")
+    m, t = paths.stage_metrics("evaluate_depth", "sequence_000"), paths.stage_timings("evaluate_depth", "sequence_000")
     assert t == timing_path(m) and t.name == "evaluate_depth_sequence_000.timing.json" and is_timing_file(t)
     assert not is_timing_file(m)
     acc, tim = json.loads(m.read_text()), json.loads(t.read_text())
     assert "wall_time_s" not in m.read_text() and "seconds_per_frame" not in m.read_text()
     assert acc["nan_metric"] is None and tim["units"] == UNITS and tim["wall_time_s"] == 73.4
-    assert read_metrics(paths, "evaluate_depth_sequence_000") == {**DOC, "nan_metric": None}
+    assert read_metrics(paths, "evaluate_depth", sequence="sequence_000") == {**DOC, "nan_metric": None}
     assert read_metrics_file(m, timings=False) == acc
     first = (m.read_bytes(), t.read_bytes())
-    write_metrics(paths, "evaluate_depth_sequence_000", {**DOC, "nan_metric": math.nan})
+    write_metrics(paths, "evaluate_depth", {**DOC, "nan_metric": math.nan}, sequence="sequence_000")
     assert (m.read_bytes(), t.read_bytes()) == first
     # nothing half-written is left beside them
     assert sorted(f.name for f in paths.metrics_dir.iterdir()) == [m.name, t.name]

@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 
 from room_pipeline.cli import main as cli_main
 from room_pipeline.errors import ConfigError, InputError
+from room_pipeline.io.hashing import sha256_file
 from room_pipeline.io.images import read_png, write_png8
 from room_pipeline.noise import CalibrationParams, NoiseProfile, add_noise, calibrate_folder, calibrate_images
 from room_pipeline.noise.calibrate import split_frames
@@ -322,7 +323,7 @@ def test_stage_writes_noisy_rgb_keeps_clean_and_is_reproducible(tmp_path):
     assert m["frames"] == 3 and 1.0 < m["added_std_levels_mean"] < 4.0
     record = tmp_path / "out" / "p0" / "sequence_index" / "sequence_000.noise.json"     # train_depth's DVC dep
     assert stage.outputs(cfg, "p0/sequence_000") == [seq / "rgb_noisy", seq / "metadata" / "noise.json", record]
-    assert json.loads(record.read_text()) == {"rgb_noisy": stage.file_sha256(seq / "rgb_noisy")}
+    assert json.loads(record.read_text()) == {"rgb_noisy": sha256_file(seq / "rgb_noisy")}
     assert [(seq / "rgb" / f"frame_{i:04d}.png").read_bytes() for i in range(3)] == clean_bytes
     noisy = [(seq / "rgb_noisy" / f"frame_{i:04d}.png").read_bytes() for i in range(3)]
     assert len(set(noisy)) == 3

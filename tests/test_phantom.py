@@ -51,7 +51,7 @@ def default_run() -> tuple[Phantom, float]:
 
 
 def test_unknown_key_is_config_error():
-    with pytest.raises(ConfigError, match="unknown config key 'trachea_diam'"):
+    with pytest.raises(ConfigError, match="unknown key 'phantom.trachea_diam'"):
         PhantomParams.from_dict({"trachea_diam": 17})
     with pytest.raises(ConfigError):
         PhantomParams.from_dict({"spacing_mm": [1.0, -1.0, 1.0]})

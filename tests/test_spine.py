@@ -263,3 +263,67 @@ def test_train_depth_waits_for_every_configured_sequence(tmp_path):
     patient = params["depth"]["cnn"]["checkpoint_patient"]
     assert upstream >= {f"{st}@{patient}-{seq}" for st in ("render", "noise") for seq in params["sequences"]}
     assert not [d for d in train.deps if "sequence_0" in str(d)], "train_depth names a sequence: stale under -S"
+
+
+def _spelled_names(path: Path, names: set[str]) -> list[str]:
+    """Layout names in the string literals of the module at ``path``, docstrings and JSON keys (a dict's keys,
+    a subscript: ``doc["metadata"]`` is a key of a record, not the ``metadata/`` folder) apart."""
+    import ast
+
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    docs = {id(n.body[0].value) for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef)) and ast.get_docstring(n) is not None}
+    docs |= {id(k) for n in ast.walk(tree) if isinstance(n, ast.Dict) for k in n.keys if k is not None}
+    docs |= {id(n.slice) for n in ast.walk(tree) if isinstance(n, ast.Subscript)}
+    literals = [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)
+                and id(n) not in docs]
+    return sorted({tok for s in literals for tok in s.replace("/", " ").split() if tok in names})
+
+
+def _metrics_names() -> set[str]:
+    """Every metrics / timing file name (and its stem) the catalogue builds for a stage."""
+    from room_pipeline.paths import PatientPaths
+
+    p = PatientPaths(Path("/o"), "p")
+    names = set()
+    for stage in stages.STAGES:
+        for f in (p.stage_metrics(stage, "sequence_000"), p.stage_metrics(stage),
+                  p.stage_timings(stage, "sequence_000"), p.stage_timings(stage)):
+            names |= {f.name, f.name.split(".")[0]}
+    return names - set(stages.STAGES)
+
+
+@pytest.mark.parametrize("module", sorted(p.name for p in (REPO / "src/room_pipeline/stages").glob("*.py")))
+def test_stage_module_spells_no_dataset_or_metrics_name(module):
+    """Stages name their files through the catalogue: no layout or metrics file name is a literal in a stage
+    module, and ``write_metrics`` gets the pipeline stage's name (the catalogue builds the file name)."""
+    import ast
+
+    path = REPO / "src/room_pipeline/stages" / module
+    found = _spelled_names(path, _layout_names() | _metrics_names())
+    assert not found, f"stages/{module} spells dataset names (take them from room_pipeline.paths/catalog): {found}"
+    for call in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(call, ast.Call) and getattr(call.func, "id", "") == "write_metrics":
+            stage = call.args[1]
+            assert isinstance(stage, ast.Constant) and stage.value == path.stem, \
+                f"stages/{module}: write_metrics names stage {ast.unparse(stage)}, not '{path.stem}'"
+
+
+def test_stage_name_check_sees_a_spelled_metrics_name(tmp_path):
+    """The check above finds a metrics file name written by hand."""
+    f = tmp_path / "x.py"
+    f.write_text('write_metrics(paths, "anatomy_validation", m)\nq = f"render_{s}.json"\n', encoding="utf-8")
+    assert "anatomy_validation" in _spelled_names(f, _metrics_names())
+
+
+def test_cli_run_only_functions_exist_and_stage_never_calls_them():
+    """stage_deps leaves the bodies of CLI_RUN_ONLY out of a stage's code: they must be cli functions, and
+    neither ``cmd_stage`` nor ``main`` may name them (a stage would then run code dvc.yaml does not list)."""
+    import ast
+
+    tree = ast.parse((REPO / "src/room_pipeline/cli.py").read_text(encoding="utf-8"))
+    funcs = {f.name: f for f in tree.body if isinstance(f, ast.FunctionDef)}
+    assert stage_deps.CLI_RUN_ONLY <= set(funcs)
+    for caller in ("cmd_stage", "main", "stage_output_paths", "_config", "_validate"):
+        names = {n.id for n in ast.walk(funcs[caller]) if isinstance(n, ast.Name)}
+        assert not names & stage_deps.CLI_RUN_ONLY, caller

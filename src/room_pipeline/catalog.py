@@ -66,6 +66,15 @@ PER_FRAME_CSVS: tuple[str, ...] = (POSE_ERRORS_CSV, DEPTH_ERRORS_CSV)
 EVALUATION = "evaluation"
 DEPTH_FINETUNE_JSON = "depth_finetune.json"
 DEPTH_MODEL = "depth_model"
+#: ``<output_dir>/manifest.json``: every file of a `room run` with its sha256 (room_pipeline.execution.manifest)
+MANIFEST_NAME = "manifest.json"
+#: inside ``depth_model/``: the training record and the per-epoch losses (train_depth)
+TRAINING_JSON = "training.json"
+TRAINING_LOG_CSV = "training_log.csv"
+#: inside the tables' folder (``evaluate.tables.output_dir``): beside the tables, the time-vs-accuracy table and
+#: the tables' numbers (the dataset's DVC metrics file)
+SPEED_ACCURACY_CSV = "pose_speed_accuracy.csv"
+TABLES_METRICS_JSON = "metrics.json"
 
 
 def frame_name(index: int, ext: str, prefix: str = "frame") -> str:

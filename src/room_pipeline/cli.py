@@ -75,12 +75,13 @@ def stage_output_paths(cfg, name: str, key: str) -> list[Path]:
 
 def cmd_stage(args: argparse.Namespace) -> int:
     from . import stages
+    from .catalog import MANIFEST_NAME
     from .io.outputs import stage_outputs
 
     module = stages.load(args.name)
     cfg = _config(args)
     _validate(cfg, args.name, args.patient)
-    manifest = Path(cfg.output_dir) / "manifest.json"
+    manifest = Path(cfg.output_dir) / MANIFEST_NAME
     with stage_outputs(stage_output_paths(cfg, args.name, args.patient), manifest=manifest):
         metrics = module.run(cfg, args.patient)
     if not args.quiet:
@@ -139,18 +140,21 @@ def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> i
     run left are removed; after the last stage, ``<output_dir>/manifest.json`` lists every file under
     output_dir with its sha256, the resolved config and the library versions.  A stage that fails prints its
     own one-line reason; `room run` adds no second line for it.
-    """
-    import importlib
 
+    Why a runner beside DVC: Hydra multirun sweeps (`room run -m noise.beta=0.2,0.5`) compose one config per
+    job and run it in its own output folder, which `dvc exp run` does not do without a workspace per job; and a
+    run needs no git/DVC repository.  It runs the same :data:`room_pipeline.stages.STAGES` table, each stage
+    through `room stage` as dvc.yaml does, so the two give the same bytes (tests/test_pipeline_e2e.py).
+    """
     from omegaconf import OmegaConf
 
     from . import stages
+    from .catalog import MANIFEST_NAME
     from .config.compose import patient_entry
     from .io.atomic import write_text
+    from .execution.manifest import write_manifest
     from .io.outputs import remove_outputs, remove_temp_files
 
-    # imported by name (like TOOLS): `room stage`, which dvc.yaml runs, does not depend on `room run`'s manifest code
-    write_manifest = importlib.import_module("room_pipeline.execution.manifest").write_manifest
 
     patients = list(cfg.get("patients") or {})
     if not patients:
@@ -168,7 +172,7 @@ def run_pipeline(cfg, patient: str | None = None, until: str | None = None) -> i
         order = order[: order.index(until) + 1]
     output_dir = Path(cfg.output_dir)
     run_dir = output_dir / patient
-    remove_outputs([output_dir / "manifest.json"])
+    remove_outputs([output_dir / MANIFEST_NAME])
     if output_dir.is_dir():
         remove_temp_files([output_dir])      # leftovers of a killed run (SIGKILL gives no chance to clean)
     config_path = run_dir / "run_config.yaml"

@@ -22,7 +22,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from .catalog import DEPTH_FINETUNE_JSON, DEPTH_MODEL, EVALUATION, EvaluationPaths, SequencePaths
+from .catalog import (DEPTH_FINETUNE_JSON, DEPTH_MODEL, EVALUATION, TRAINING_JSON, TRAINING_LOG_CSV, EvaluationPaths,
+                      SequencePaths)
 
 #: stages whose metrics file is not named after the stage (``metrics/<name>.json``)
 METRICS_NAMES = {"validate_anatomy": "anatomy_validation", "validate_centreline": "centreline_validation"}
@@ -166,6 +167,16 @@ class PatientPaths:
         return self.root / DEPTH_MODEL
 
     @property
+    def depth_training(self) -> Path:
+        """``<patient>/depth_model/training.json``: the fine-tuning's provenance record (train_depth)."""
+        return self.depth_model / TRAINING_JSON
+
+    @property
+    def depth_training_log(self) -> Path:
+        """``<patient>/depth_model/training_log.csv``: per-epoch losses (train_depth)."""
+        return self.depth_model / TRAINING_LOG_CSV
+
+    @property
     def sequence_index(self) -> Path:
         """``<patient>/sequence_index/``: one record per rendered sequence and stage (:meth:`sequence_record`);
         train_depth's DVC dep, which stays right whatever ``sequences`` is (scripts/write_dvc_yaml.py)."""
@@ -189,6 +200,7 @@ class PatientPaths:
         name = METRICS_NAMES.get(stage, stage)
         return self.metrics(f"{name}_{sequence}" if sequence else name)
 
-    def timings(self, stage: str) -> Path:
-        """``metrics/<stage>.timing.json`` (see :mod:`room_pipeline.io.metrics`)."""
-        return self.metrics_dir / f"{stage}.timing.json"
+    def stage_timings(self, stage: str, sequence: str = "") -> Path:
+        """The timing file beside :meth:`stage_metrics` (``metrics/<stage>[_<sequence>].timing.json``, see
+        :mod:`room_pipeline.io.metrics`)."""
+        return self.stage_metrics(stage, sequence).with_suffix(".timing.json")

@@ -7,6 +7,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import ConfigError
 
@@ -106,13 +107,9 @@ class PhantomParams:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "PhantomParams":
-        """Build from a config section; an unknown key raises :class:`ConfigError` naming it."""
-        d = dict(d or {})
-        known = {f.name for f in dataclasses.fields(cls)}
-        for key in d:
-            if key not in known:
-                raise ConfigError(f"phantom: unknown config key '{key}' (known: {', '.join(sorted(known))})")
-        return cls(**d)
+        """Build from a config section (:func:`~room_pipeline.config.params.params_from_dict`, then
+        :meth:`__post_init__`); an unknown key or a bad value raises :class:`ConfigError` naming it."""
+        return params_from_dict(cls, d, "phantom")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

@@ -18,6 +18,7 @@ import json
 from pathlib import Path
 from typing import Any, Mapping
 
+from ..catalog import SPEED_ACCURACY_CSV, TABLES_METRICS_JSON
 from ..config.params import params_from_dict
 from ..errors import ConfigError, InputError
 from ..io.jsondoc import finite, round_floats
@@ -127,7 +128,7 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
         for seq in sequences:
             f = paths.eval(seq).depth
             if f.is_file():
-                doc = _read(f, paths.timings(f"evaluate_depth_{seq}"))
+                doc = _read(f, paths.stage_timings("evaluate_depth", seq))
                 if "%" in str((doc.get("units") or {}).get("delta1", "")):
                     for rec in (doc.get("methods") or {}).values():
                         for k in ("delta1", "delta2", "delta3"):
@@ -136,7 +137,7 @@ def read_depth_files(output_dir: Path, patients: list[str], sequences: list[str]
                 depth.setdefault(pat, []).append(doc)
         f = paths.depth_finetune      # written by train_depth
         if f.is_file():
-            finetune.append(_read(f, paths.timings("train_depth")))
+            finetune.append(_read(f, paths.stage_timings("train_depth")))
     return depth, finetune
 
 
@@ -148,7 +149,7 @@ def read_pose_files(output_dir: Path, patients: list[str], sequences: list[str])
             paths = PatientPaths(output_dir, pat)
             f = paths.eval(seq).pose
             if f.is_file():
-                docs.append(_read(f, paths.timings(f"evaluate_pose_{seq}")))
+                docs.append(_read(f, paths.stage_timings("evaluate_pose", seq)))
     return docs
 
 
@@ -168,8 +169,8 @@ def report_files(tables: dict, counts: dict) -> dict[str, str | dict]:
         files[f"{name}.md"] = t.to_markdown()
         files[f"{name}.tex"] = t.to_latex()
         files[f"{name}.csv"] = t.to_csv()
-    files["pose_speed_accuracy.csv"] = speed_accuracy_csv(tables["table_1_pose"])
-    files["metrics.json"] = finite(round_floats({
+    files[SPEED_ACCURACY_CSV] = speed_accuracy_csv(tables["table_1_pose"])
+    files[TABLES_METRICS_JSON] = finite(round_floats({
         **{name: t.numbers for name, t in tables.items()}, "inputs": counts,
         "units": {"RRA@5, RTA@5, AUC@30, registration_rate, delta1": "fractions in [0, 1]",
                   "ate_rmse_mm, L1_mm, RMSE_mm": "mm", "seconds_per_frame": "s"},

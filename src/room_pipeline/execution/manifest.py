@@ -25,7 +25,6 @@ building a manifest never imports bpy, Open3D or torch.
 from __future__ import annotations
 
 import fnmatch
-import hashlib
 import json
 import os
 import platform
@@ -34,11 +33,12 @@ from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any, Mapping
 
+from ..catalog import MANIFEST_NAME
 from ..errors import InputError
 from ..io.atomic import write_json
+from ..io.hashing import sha256_file
 from ..io.outputs import is_temp
 
-MANIFEST_NAME = "manifest.json"
 FORMAT = "room-manifest/1"
 
 #: reported name -> installed distribution names tried in turn
@@ -63,14 +63,6 @@ LIBRARIES: dict[str, tuple[str, ...]] = {
 
 #: temporary files of room_pipeline.io.atomic: ``.<name>.<8 random chars>.tmp<suffix of name>``
 _TEMP_RE = re.compile(r"^\.(?P<name>.+)\.[A-Za-z0-9_]{8}\.tmp(?P<suffix>.*)$")
-
-
-def sha256_file(path: str | os.PathLike) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _files(root: Path) -> list[Path]:

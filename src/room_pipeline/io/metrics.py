@@ -123,6 +123,7 @@ def read_metrics_file(path: str | Path, timings: bool = True) -> dict:
     return doc
 
 
-def read_metrics(paths: Any, stage: str, timings: bool = True) -> dict:
-    """``paths.metrics(stage)`` (a :class:`~room_pipeline.paths.PatientPaths`) read by :func:`read_metrics_file`."""
-    return read_metrics_file(paths.metrics(stage), timings=timings)
+def read_metrics(paths: Any, stage: str, timings: bool = True, sequence: str = "") -> dict:
+    """``paths.stage_metrics(stage, sequence)`` (a :class:`~room_pipeline.paths.PatientPaths`) read by
+    :func:`read_metrics_file`."""
+    return read_metrics_file(paths.stage_metrics(stage, sequence), timings=timings)

@@ -65,14 +65,13 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 
+from ..config.params import params_from_dict
 from ..conventions import MM
 from ..errors import ConfigError
 from ..robot.controller import IKController
 from ..robot.kinematics import ScopeGeometry, camera_roll, fk, straight_roll_change
 
 SdfFn = Callable[[np.ndarray], np.ndarray]
-
-_INT_KEYS = ("body_points", "roll_hold_guard_frames", "max_passes", "max_iterations")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,7 +89,7 @@ class JointPlanParams:
     limit_weight_mm: float = 1000.0       # w_limit: a rate or acceleration 100 % over its limit costs this, mm
     max_rate_q1_mm_s: float = 16.0
     max_rate_q2_deg_s: float = 90.0
-    max_rate_q3_mm_s: float = 50.0
+    max_rate_q3_mm_s: float = 10.0
     max_acc_q1_mm_s2: float = 10.0
     max_acc_q2_deg_s2: float = 360.0
     max_acc_q3_mm_s2: float = 20.0
@@ -100,25 +99,13 @@ class JointPlanParams:
     max_passes: int = 4                   # solves: the first with q2 free, then with the hold, while it changes
     max_iterations: int = 400             # least-squares function evaluations per pass
 
-    @classmethod
-    def from_dict(cls, d) -> "JointPlanParams":
-        """From a config mapping (``trajectory.joint_plan``); unknown keys and bad values raise ConfigError."""
-        d = dict(d or {})
-        known = [f.name for f in dataclasses.fields(cls)]
-        for key in d:
-            if key not in known:
-                raise ConfigError(f"trajectory.joint_plan: unknown key '{key}' (known: {', '.join(known)})")
-        out = {}
-        for key, v in d.items():
+    def __post_init__(self) -> None:
+        """Every value a finite number >= 0 (rates, limits and the scope > 0); ConfigError names the key."""
+        p = self
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ConfigError(f"trajectory.joint_plan.{key} must be a finite number >= 0, got {v!r}")
-            if key in _INT_KEYS:
-                if float(v) != int(v):
-                    raise ConfigError(f"trajectory.joint_plan.{key} must be an integer, got {v!r}")
-                out[key] = int(v)
-            else:
-                out[key] = float(v)
-        p = cls(**out)
+                raise ConfigError(f"trajectory.joint_plan.{f.name} must be a finite number >= 0, got {v!r}")
         for key in ("scope_diameter_mm", "max_rate_q1_mm_s", "max_rate_q2_deg_s", "max_rate_q3_mm_s",
                     "max_acc_q1_mm_s2", "max_acc_q2_deg_s2", "max_acc_q3_mm_s2", "limit_weight_mm"):
             if getattr(p, key) <= 0:
@@ -129,7 +116,12 @@ class JointPlanParams:
             raise ConfigError("trajectory.joint_plan.max_passes and max_iterations must be >= 1")
         if p.roll_hold_q1_fraction * (1.0 + p.roll_hold_margin) >= 1.0:
             raise ConfigError("trajectory.joint_plan: (1 + roll_hold_margin) x roll_hold_q1_fraction must be < 1")
-        return p
+
+    @classmethod
+    def from_dict(cls, d) -> "JointPlanParams":
+        """From a config mapping (``trajectory.joint_plan`` less its ``enabled`` key); unknown keys and bad values
+        raise ConfigError (:func:`~room_pipeline.config.params.params_from_dict`, then :meth:`__post_init__`)."""
+        return params_from_dict(cls, d, "trajectory.joint_plan")
 
 
 def _wrap(a):

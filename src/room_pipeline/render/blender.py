@@ -85,6 +85,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
+import sys
 import tempfile
 import weakref
 from pathlib import Path
@@ -92,6 +93,7 @@ from typing import Iterable
 
 import numpy as np
 
+from ..config.params import params_from_dict
 from ..errors import ConfigError
 from .scene import Scene
 
@@ -164,6 +166,13 @@ class CyclesSettings:
     texture: str = "per_point"
 
     def __post_init__(self) -> None:
+        if self.exposure is not None:           # stops: a plain float (so to_dict() is JSON), or null
+            try:
+                if isinstance(self.exposure, bool):
+                    raise TypeError
+                object.__setattr__(self, "exposure", float(self.exposure))
+            except (TypeError, ValueError):
+                raise ConfigError(f"cycles.exposure: cannot read {self.exposure!r} as a number of stops") from None
         if self.samples < 1:
             raise ConfigError(f"cycles.samples must be >= 1, got {self.samples}")
         if not 0.0 <= self.adaptive_threshold < 1.0:
@@ -186,30 +195,9 @@ class CyclesSettings:
 
     @staticmethod
     def from_dict(d: dict | None) -> "CyclesSettings":
-        """Build from a config mapping; an unknown key raises :class:`ConfigError` naming it."""
-        d = dict(d or {})
-        fields = {f.name: f for f in dataclasses.fields(CyclesSettings)}
-        unknown = sorted(set(d) - set(fields))
-        if unknown:
-            raise ConfigError(f"unknown cycles setting(s): {', '.join(unknown)} (known: {', '.join(fields)})")
-        kw = {}
-        for k, v in d.items():
-            if k == "exposure":
-                if v is not None:
-                    try:
-                        v = float(v)
-                    except (TypeError, ValueError):
-                        raise ConfigError(f"cycles.exposure: cannot read {v!r} as a number of stops") from None
-                kw[k] = v
-                continue
-            typ = type(getattr(CyclesSettings(), k))
-            try:
-                kw[k] = bool(v) if typ is bool and isinstance(v, bool) else typ(v)
-            except (TypeError, ValueError):
-                raise ConfigError(f"cycles.{k}: cannot read {v!r} as {typ.__name__}") from None
-            if typ is bool and not isinstance(v, bool):
-                raise ConfigError(f"cycles.{k} must be true or false, got {v!r}")
-        return CyclesSettings(**kw)
+        """Build from a config mapping (:func:`~room_pipeline.config.params.params_from_dict`, section ``cycles``,
+        then :meth:`__post_init__`); an unknown key or a bad value raises :class:`ConfigError` naming it."""
+        return params_from_dict(CyclesSettings, d, "cycles")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -220,6 +208,22 @@ class CyclesSettings:
 #: the isotropic light); tests/test_realism.py::test_cycles_renders_the_same_scope_light_as_the_ray_caster
 #: fails if a Blender update changes it.
 IES_UNIT_CD = 1000.0 / 70.6
+
+
+def import_bpy():
+    """``import bpy`` (the only one of room-pipeline), also in a worker spawned by a process that had imported bpy.
+
+    Importing bpy puts Blender's script folders (``.../site-packages/bpy/<ver>/scripts/...``) on
+    ``sys.path``; a spawned process inherits that ``sys.path``, so its ``import bpy`` would find
+    Blender's inner ``bpy`` package (which needs the ``_bpy`` built-in) instead of the bpy module.
+    Until bpy is imported in this process, those folders are dropped.
+    """
+    if "bpy" not in sys.modules:
+        marker = f"{os.sep}site-packages{os.sep}bpy{os.sep}"
+        sys.path[:] = [d for d in sys.path if marker not in d]
+    import bpy
+
+    return bpy
 
 
 def ies_profile(mu: float, n: int = 181) -> str:
@@ -290,8 +294,7 @@ class CyclesRenderer:
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
-        import bpy  # the only bpy import of room-pipeline
-
+        bpy = import_bpy()
         self._bpy = bpy
         sc = self.scene
         st = self.settings
@@ -681,7 +684,7 @@ def osl_albedo_at(points_world: np.ndarray, tex, base_color, airway: np.ndarray 
     comparison with :func:`~room_pipeline.render.texture.mucosa_albedo`.
     ``airway``: optional (N, 4) coordinates.  Resets the process's Blender session.
     """
-    import bpy
+    bpy = import_bpy()
 
     p = np.asarray(points_world, dtype=np.float32).reshape(-1, 3)
     n = len(p)

@@ -39,7 +39,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import resource
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -188,24 +187,9 @@ def exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | N
     return meta, ev, cycles_ev, frame_ev
 
 
-def drop_inherited_bpy_paths() -> None:
-    """Let ``import bpy`` work in a worker spawned by a process that had imported bpy.
-
-    Importing bpy puts Blender's script folders (``.../site-packages/bpy/<ver>/scripts/...``) on
-    ``sys.path``; a spawned process inherits that ``sys.path``, so its ``import bpy`` would find
-    Blender's inner ``bpy`` package (which needs the ``_bpy`` built-in) instead of the bpy module.
-    Until bpy is imported here, those folders are dropped.
-    """
-    if "bpy" not in sys.modules:
-        marker = f"{os.sep}site-packages{os.sep}bpy{os.sep}"
-        sys.path[:] = [d for d in sys.path if marker not in d]
-
-
 def frame_worker(scene: Scene, p: RenderParams, seq: str, src: np.ndarray, ts: np.ndarray, poses: np.ndarray,
                   nthreads: int, cycles_ev: float | None, cycles_threads: int) -> dict:
     """Per-worker state, built once: the renderers (BVH, Blender scene) and what names and records a frame."""
-    if p.backend == "cycles":
-        drop_inherited_bpy_paths()
     r = Renderers(scene, p, nthreads=nthreads, cycles_ev=cycles_ev, cycles_threads=cycles_threads)
     if r.cycles is not None:     # spawned workers end without running weakref finalizers: remove Cycles' temp dir
         import multiprocessing.util

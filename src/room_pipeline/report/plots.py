@@ -1,4 +1,5 @@
-"""The ``benchmarks`` section: speed-vs-error plots, one per benchmark result file that has a plot."""
+"""The ``benchmarks`` section: speed-vs-error plots, one per benchmark result file that has a plot, each declared
+by a :class:`PlotSpec` (which JSON columns make which chart) and drawn by :func:`build_plot` + :func:`plot_png`."""
 from __future__ import annotations
 
 import dataclasses
@@ -26,76 +27,128 @@ class Plot:
     kind: str = "line"        # "line" or "bar"
 
 
-def _plot_mesh_decimation(d: Mapping) -> Plot:
-    series = []
-    for case in sorted({r["case"] for r in d["rows"]}):
-        rows = sorted((r for r in d["rows"] if r["case"] == case), key=lambda r: r["n_faces"])
-        series.append((f"{case}: mean", [r["n_faces"] for r in rows], [r["mean_vox"] for r in rows],
-                       {"marker": "o", "group": case}))
-        series.append((f"{case}: p95", [r["n_faces"] for r in rows], [r["p95_vox"] for r in rows],
-                       {"marker": "s", "ls": "--", "group": case}))
-    return Plot("Mesh decimation: faces vs surface error", "faces (fewer = faster downstream)",
-                "distance to the exact surface (voxels)", series, logx=True)
+@dataclasses.dataclass(frozen=True)
+class Line:
+    """One line per group of a :class:`PlotSpec`: its y column, label (``str.format`` over the group's columns,
+    with :attr:`PlotSpec.names` applied) and matplotlib style; ``style_by``: style key -> (column, {value: style})."""
+
+    y: str
+    label: str
+    style: Mapping = dataclasses.field(default_factory=dict)
+    style_by: Mapping = dataclasses.field(default_factory=dict)
 
 
-def _plot_sdf_methods(d: Mapping) -> Plot:
-    markers = "os^Dv<>p"
-    cases = sorted({r["case"] for r in d["rows"]})
-    series = []
-    for m in sorted({r["method"] for r in d["rows"]}):
-        rows = [r for r in d["rows"] if r["method"] == m]
-        for r in rows:
-            series.append((m if r is rows[0] else None, [r["wall_s"]], [r["mae_vox"]],
-                           {"marker": markers[cases.index(r["case"]) % len(markers)], "ls": "none", "group": m}))
-    return Plot("SDF from a mask: time vs error", "wall time (s)", "MAE (voxels)", series, logx=True,
-                note="marker = case: " + ", ".join(f"{markers[i % len(markers)]} {c}" for i, c in enumerate(cases)))
+@dataclasses.dataclass(frozen=True)
+class PlotSpec:
+    """Which columns of a benchmark result file make its chart, read by :func:`build_plot`.
+
+    ``rows``: the key of the row list (or, for ``kind="bar"``, of a {name: row} mapping, bars sorted by name);
+    ``group``: columns whose distinct values (sorted; in order of ``group_order`` where given) make one group;
+    rows of a group sorted by ``sort``, ``x`` against each :class:`Line`'s y.  ``points``: every row its own
+    point series (the group's label on its first only) with the marker of ``marker_by``'s value (sorted values
+    cycling through :data:`MARKERS`; the caption lists them).  ``flag``: (column, value, style) -- the group's
+    rows with that value drawn again in that style, unlabelled, captioned ``flag_note``.  ``note``: caption
+    (``str.format``; ``{values}``: the distinct values of column ``note_values`` (times ``note_scale``), ``%g``
+    joined by ", ").  ``colour_by_group``: a group's lines share a colour."""
+
+    stem: str
+    title: str
+    xlabel: str
+    ylabel: str
+    rows: str
+    x: str = ""
+    group: tuple[str, ...] = ()
+    sort: str = ""
+    lines: tuple[Line, ...] = ()
+    group_order: Mapping = dataclasses.field(default_factory=dict)
+    names: Mapping = dataclasses.field(default_factory=dict)
+    points: bool = False
+    marker_by: str = ""
+    flag: tuple = ()
+    flag_note: str = ""
+    note: str = ""
+    note_values: str = ""
+    note_scale: float = 1.0
+    colour_by_group: bool = False
+    logx: bool = False
+    logy: bool = False
+    kind: str = "line"
 
 
-def _plot_simulation(d: Mapping) -> Plot:
-    rows = d["speed_vs_error"]
-    series = []
-    for n in sorted({r["n_links"] for r in rows}):
-        rs = sorted((r for r in rows if r["n_links"] == n), key=lambda r: r["time_step_s"])
-        series.append((f"{n} links", [r["wall_s_per_sim_s_free"] for r in rs], [r["tip_error_mm_max"] for r in rs],
-                       {"marker": "o"}))
-        bad = [r for r in rs if r.get("stable") is False]
-        if bad:
-            series.append((None, [r["wall_s_per_sim_s_free"] for r in bad], [r["tip_error_mm_max"] for r in bad],
-                           {"marker": "x", "ls": "none", "color": "k", "ms": 9}))
-    return Plot("Scope simulation: cost vs tip error", "wall s per simulated s (free space)", "max tip error (mm)",
-                series, logy=True, note="points along a line: time steps " + ", ".join(
-                    f"{1e3 * t:g}" for t in sorted({r['time_step_s'] for r in rows})) + " ms"
-                + ("; x = unstable" if any(r.get("stable") is False for r in rows) else ""))
+MARKERS = "os^Dv<>p"
 
-
-def _plot_cycles(d: Mapping) -> Plot:
-    rows = d["quality"]
-    series = []
-    for view in sorted({r["view"] for r in rows}):
-        for dn in (False, True):
-            rs = sorted((r for r in rows if r["view"] == view and bool(r["denoise"]) == dn), key=lambda r: r["spp"])
-            if rs:
-                series.append((f"view {view}, {'OIDN' if dn else 'no denoiser'}", [r["time_s"] for r in rs],
-                               [r["psnr_db"] for r in rs], {"marker": "o", "ls": "-" if dn else "--"}))
-    return Plot("Cycles: time per frame vs PSNR", "time per frame (s)", "PSNR vs reference (dB)", series, logx=True,
-                note="points along a line: " + ", ".join(str(s) for s in sorted({r["spp"] for r in rows})) + " spp")
-
-
-def _plot_raycast(d: Mapping) -> Plot:
-    runs = d["runs"]
-    names = sorted(runs)
-    return Plot("Fast renderer: time per frame (speed only, no error axis)", "ms per frame", "",
-                [(n, [runs[n]["ms_per_frame"]], [0], {}) for n in names], kind="bar")
-
-
-#: benchmark result file stem -> chart builder (in page order)
-BENCHMARK_PLOTS: tuple[tuple[str, Callable[[Mapping], Plot]], ...] = (
-    ("mesh_decimation", _plot_mesh_decimation),
-    ("sdf_methods", _plot_sdf_methods),
-    ("simulation", _plot_simulation),
-    ("raycast_renderer", _plot_raycast),
-    ("cycles_quality", _plot_cycles),
+#: benchmark result file stem -> chart (in page order)
+BENCHMARK_PLOTS: tuple[PlotSpec, ...] = (
+    PlotSpec("mesh_decimation", "Mesh decimation: faces vs surface error", "faces (fewer = faster downstream)",
+             "distance to the exact surface (voxels)", rows="rows", x="n_faces", group=("case",), sort="n_faces",
+             lines=(Line("mean_vox", "{case}: mean", {"marker": "o"}),
+                    Line("p95_vox", "{case}: p95", {"marker": "s", "ls": "--"})), colour_by_group=True, logx=True),
+    PlotSpec("sdf_methods", "SDF from a mask: time vs error", "wall time (s)", "MAE (voxels)", rows="rows",
+             x="wall_s", group=("method",), lines=(Line("mae_vox", "{method}", {"ls": "none"}),), points=True,
+             marker_by="case", colour_by_group=True, logx=True),
+    PlotSpec("simulation", "Scope simulation: cost vs tip error", "wall s per simulated s (free space)",
+             "max tip error (mm)", rows="speed_vs_error", x="wall_s_per_sim_s_free", group=("n_links",),
+             sort="time_step_s", lines=(Line("tip_error_mm_max", "{n_links} links", {"marker": "o"}),),
+             flag=("stable", False, {"marker": "x", "ls": "none", "color": "k", "ms": 9}), flag_note="; x = unstable",
+             note="points along a line: time steps {values} ms", note_values="time_step_s", note_scale=1e3,
+             logy=True),
+    PlotSpec("raycast_renderer", "Fast renderer: time per frame (speed only, no error axis)", "ms per frame", "",
+             rows="runs", lines=(Line("ms_per_frame", "{name}"),), kind="bar"),
+    PlotSpec("cycles_quality", "Cycles: time per frame vs PSNR", "time per frame (s)", "PSNR vs reference (dB)",
+             rows="quality", x="time_s", group=("view", "denoise"), sort="spp", group_order={"denoise": (False, True)},
+             names={"denoise": {False: "no denoiser", True: "OIDN"}},
+             lines=(Line("psnr_db", "view {view}, {denoise}", {"marker": "o"}, {"ls": ("denoise", {True: "-", False: "--"})}),),
+             note="points along a line: {values} spp", note_values="spp", logx=True),
 )
+
+
+def _groups(spec: PlotSpec, rows: list) -> list[tuple]:
+    """The distinct values of the group columns, sorted column by column (``group_order`` first)."""
+    keys = {tuple(bool(r[c]) if c in spec.group_order else r[c] for c in spec.group) for r in rows}
+    order = [(lambda v, c=c: spec.group_order[c].index(v)) if c in spec.group_order else (lambda v: v)
+             for c in spec.group]
+    return sorted(keys, key=lambda k: tuple(f(v) for f, v in zip(order, k)))
+
+
+def build_plot(spec: PlotSpec, doc: Mapping) -> Plot:
+    """The :class:`Plot` of benchmark result ``doc`` as ``spec`` says (KeyError etc. on another structure)."""
+    if spec.kind == "bar":
+        runs = doc[spec.rows]
+        line = spec.lines[0]
+        return Plot(spec.title, spec.xlabel, spec.ylabel,
+                    [(line.label.format(name=n), [runs[n][line.y]], [0], {}) for n in sorted(runs)], kind="bar")
+    rows = doc[spec.rows]
+    marks = sorted({r[spec.marker_by] for r in rows}) if spec.points else []
+    series = []
+    for key in _groups(spec, rows):
+        g = [r for r in rows if tuple(bool(r[c]) if c in spec.group_order else r[c] for c in spec.group) == key]
+        if spec.sort:
+            g = sorted(g, key=lambda r: r[spec.sort])
+        if not g:
+            continue
+        fields = {c: spec.names.get(c, {}).get(v, v) for c, v in zip(spec.group, key)}
+        group = {"group": "/".join(str(v) for v in key)} if spec.colour_by_group else {}
+        for line in spec.lines:
+            style = {**line.style, **{k: m[dict(zip(spec.group, key))[c]] for k, (c, m) in line.style_by.items()},
+                     **group}
+            label = line.label.format(**fields)
+            if spec.points:
+                series += [(label if r is g[0] else None, [r[spec.x]], [r[line.y]],
+                            {"marker": MARKERS[marks.index(r[spec.marker_by]) % len(MARKERS)], **style}) for r in g]
+            else:
+                series.append((label, [r[spec.x] for r in g], [r[line.y] for r in g], style))
+            if spec.flag:
+                bad = [r for r in g if r.get(spec.flag[0]) is spec.flag[1]]
+                if bad:
+                    series.append((None, [r[spec.x] for r in bad], [r[line.y] for r in bad], dict(spec.flag[2])))
+    note = spec.note and spec.note.format(values=", ".join(f"{spec.note_scale * v:g}"
+                                                            for v in sorted({r[spec.note_values] for r in rows})))
+    if spec.flag and any(r.get(spec.flag[0]) is spec.flag[1] for r in rows):
+        note += spec.flag_note
+    if spec.points:
+        note = "marker = " + spec.marker_by + ": " + ", ".join(f"{MARKERS[i % len(MARKERS)]} {c}"
+                                                             for i, c in enumerate(marks))
+    return Plot(spec.title, spec.xlabel, spec.ylabel, series, logx=spec.logx, logy=spec.logy, note=note)
 
 
 def plot_png(plot: Plot, size_in: tuple[float, float] = (5.6, 3.6), dpi: int = 100) -> bytes:
@@ -158,14 +211,15 @@ def section_benchmarks(opts: ReportOptions) -> str:
         return na(f"no benchmark results folder ({show_path(d, opts.base) if d else 'none given'})")
     d = Path(d)
     out, figs = [], []
-    for stem, builder in BENCHMARK_PLOTS:
+    for spec in BENCHMARK_PLOTS:
+        stem = spec.stem
         f = d / f"{stem}.json"
         doc, why = read_json(f)
         if doc is None:
             figs.append(f'<figure class="plot">{na(f"{stem}: {why}")}</figure>')
             continue
         try:
-            plot = builder(doc)
+            plot = build_plot(spec, doc)
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             figs.append(f'<figure class="plot">{na(f"{stem}.json has an unexpected structure ({exc!r})")}</figure>')
             continue

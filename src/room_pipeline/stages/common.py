@@ -1,7 +1,6 @@
 """Shared plumbing of the stage modules: paths, metadata, timing, metrics."""
 from __future__ import annotations
 
-import hashlib
 import resource
 import time
 from pathlib import Path
@@ -12,6 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 from .. import __version__
 from ..conventions import metadata_block
 from ..io.atomic import write_json
+from ..io.hashing import sha256_file
 from ..io.jsondoc import finite as _finite, read_json, round_floats  # noqa: F401 (the stages' names)
 from ..io.metrics import split_timings, write_metrics_file
 from ..paths import PatientPaths
@@ -26,25 +26,11 @@ def config_section(cfg: DictConfig, *keys: str) -> dict:
             for k in keys if k in cfg}
 
 
-def file_sha256(path: str | Path) -> str:
-    """sha256 of a file, or of a folder's files (sorted by relative path)."""
-    p = Path(path)
-    h = hashlib.sha256()
-    files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
-    for f in files:
-        if p.is_dir():
-            h.update(str(f.relative_to(p)).encode())
-        with open(f, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                h.update(chunk)
-    return h.hexdigest()
-
-
 def write_sequence_record(paths: PatientPaths, sequence: str, stage: str, files: dict[str, Path]) -> None:
-    """``sequence_index/<sequence>.<stage>.json`` = {name: sha256 of the file or folder (:func:`file_sha256`), or
+    """``sequence_index/<sequence>.<stage>.json`` = {name: sha256 of the file or folder (:func:`~room_pipeline.io.hashing.sha256_file`), or
     null when the stage did not write it}: what train_depth's DVC dep sees of this sequence."""
     write_json(paths.sequence_record(sequence, stage),
-               {k: file_sha256(f) if Path(f).exists() else None for k, f in files.items()})
+               {k: sha256_file(f) if Path(f).exists() else None for k, f in files.items()})
 
 
 def metadata(stage: str, patient: str, cfg: DictConfig, keys: tuple[str, ...], **extra: Any) -> dict:
@@ -68,15 +54,18 @@ class StageTimer:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def write_metrics(paths: PatientPaths, stage: str, metrics: dict, timings: dict | None = None) -> None:
-    """DVC metrics file ``metrics/<stage>.json`` and its timings ``metrics/<stage>.timing.json``.
+def write_metrics(paths: PatientPaths, stage: str, metrics: dict, timings: dict | None = None,
+                  sequence: str = "") -> None:
+    """DVC metrics file of pipeline stage ``stage`` (a name of :data:`room_pipeline.stages.STAGES`) for
+    ``sequence`` (empty when the stage does not fan out over sequences) and its timing file; the catalogue
+    (:meth:`PatientPaths.stage_metrics`) names both, e.g. ``metrics/render_sequence_000.json``.
 
     The keys of :data:`room_pipeline.io.metrics.TIMING_KEYS` (wall/CPU times, throughput, peak memory; at any
     dict depth) go to the timing file, so a DVC experiment compares accuracy only; ``timings`` (those taken out
     of the stage's evaluation file by :func:`without_timings`) are merged into it; JSON numbers only
     (NaN -> null), each file written atomically (timings first: the metrics file marks a finished stage).
     """
-    write_metrics_file(paths.metrics(stage), _finite(metrics), _finite(timings or {}))
+    write_metrics_file(paths.stage_metrics(stage, sequence), _finite(metrics), _finite(timings or {}))
 
 
 def without_timings(doc: dict) -> tuple[dict, dict]:

@@ -40,7 +40,7 @@ def outputs(cfg: DictConfig, key: str) -> list:
     patient, sequence = split_key(key)
     paths = patient_paths(cfg, patient)
     ev = paths.eval(sequence)
-    return [ev.depth, ev.depth_errors, paths.metrics(f"evaluate_depth_{sequence}")]
+    return [ev.depth, ev.depth_errors, paths.stage_metrics("evaluate_depth", sequence)]
 
 
 def run(cfg: DictConfig, key: str) -> dict:
@@ -72,5 +72,5 @@ def run(cfg: DictConfig, key: str) -> dict:
                "wall_time_s": round(timer.wall_s, 3), "cpu_time_s": round(time.process_time() - cpu0, 3),
                "seconds_per_frame_all_methods": round(timer.wall_s / len(samples), 4),
                "peak_rss_mb": round(timer.peak_rss_mb(), 1), "methods": depth_summary(methods)}
-    write_metrics(paths, f"evaluate_depth_{sequence}", metrics, doc_timings)
+    write_metrics(paths, "evaluate_depth", metrics, doc_timings, sequence)
     return metrics

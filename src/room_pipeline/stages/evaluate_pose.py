@@ -63,5 +63,5 @@ def run(cfg: DictConfig, key: str) -> dict:
     metrics = {"frames": len(images), "wall_time_s": round(timer.wall_s, 3),
                "cpu_time_s": round(time.process_time() - cpu0, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1),
                **pose_summary(results, p)}
-    write_metrics(paths, f"evaluate_pose_{sequence}", metrics, doc_timings)
+    write_metrics(paths, "evaluate_pose", metrics, doc_timings, sequence)
     return metrics

@@ -32,7 +32,8 @@ from ..noise.params import (PROJECT_ROOT, NoiseParams, frame_seed, resolve_profi
                              sequence_hash)
 from ..noise.profile import NoiseProfile
 from ..noise.synthesize import add_noise, filter_table
-from .common import StageTimer, file_sha256, metadata, patient_paths, write_metrics, write_sequence_record
+from ..io.hashing import sha256_file
+from .common import StageTimer, metadata, patient_paths, write_metrics, write_sequence_record
 
 IN_FOLDER = FOLDERS["rgb"]
 OUT_FOLDER = FOLDERS[RGB_NOISY]
@@ -94,7 +95,7 @@ def run(cfg: DictConfig, key: str) -> dict:
         "seed_rule": "numpy.random.SeedSequence([seed, int.from_bytes(sha256(sequence)[:4], 'little'), frame "
                      "index]) -> PCG64",
         "sequence_hash": sequence_hash(sequence),
-        "profile": {"path": p.profile, "sha256": file_sha256(profile_file), "summary": profile.summary()},
+        "profile": {"path": p.profile, "sha256": sha256_file(profile_file), "summary": profile.summary()},
         "frames": records,
         "conventions": metadata_block(),
         "metadata": metadata("noise", patient, cfg, ("noise",), sequence=sequence)})
@@ -105,5 +106,5 @@ def run(cfg: DictConfig, key: str) -> dict:
                "filter_table_s": round(table_s, 3),
                "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
     write_sequence_record(paths, sequence, "noise", {RGB_NOISY: out_dir})     # train_depth's dep (render's too)
-    write_metrics(paths, f"noise_{sequence}", metrics)
+    write_metrics(paths, "noise", metrics, sequence=sequence)
     return metrics

@@ -60,5 +60,5 @@ def run(cfg: DictConfig, key: str) -> dict:
     # what train_depth reads of this sequence (its DVC dep: scripts/write_dvc_yaml.py)
     write_sequence_record(paths, sequence, "render", {m: sp.folder(m) for m in ("rgb", "depth")}
                           | {"calibration": sp.calibration, "render_json": sp.render_json})
-    write_metrics(paths, f"render_{sequence}", metrics)
+    write_metrics(paths, "render", metrics, sequence=sequence)
     return metrics

@@ -18,7 +18,8 @@ from ..config.compose import patient_entry, section
 from ..errors import InputError
 from ..io.atomic import write_json
 from ..io.volume import read_volume, write_nifti
-from .common import StageTimer, file_sha256, metadata, patient_paths, write_metrics
+from ..io.hashing import sha256_file
+from .common import StageTimer, metadata, patient_paths, write_metrics
 
 
 def outputs(cfg: DictConfig, patient: str) -> list:
@@ -43,7 +44,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
     src = str(entry["input"])
     with StageTimer() as timer:
         vol = read_volume(src)
-        source = {"kind": entry["kind"], "path": source_path(src, cfg.output_dir), "sha256": file_sha256(src),
+        source = {"kind": entry["kind"], "path": source_path(src, cfg.output_dir), "sha256": sha256_file(src),
                   **vol.info}
         if entry["kind"] == "ct":
             vol, ct_report = check_ct(vol, src)

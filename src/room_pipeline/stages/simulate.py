@@ -69,5 +69,5 @@ def run(cfg: DictConfig, key: str) -> dict:
                tum_text(res.timestamps, res.tip_poses, "simulated camera-to-world, OpenCV camera, world RAS+, m, s"))
     metrics = {**sim_metrics(len(res.timestamps), res.report),
                "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
-    write_metrics(paths, f"simulate_{sequence}", metrics)
+    write_metrics(paths, "simulate", metrics, sequence=sequence)
     return metrics

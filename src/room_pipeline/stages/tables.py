@@ -26,6 +26,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from ..catalog import SPEED_ACCURACY_CSV, TABLES_METRICS_JSON
 from ..errors import ConfigError
 from ..evaluate.reports import (TABLES, TablesParams, build_tables, other_anatomy_records, read_depth_files,
                                 read_pose_files, report_files)
@@ -55,7 +56,7 @@ def outputs(cfg: DictConfig, key: str) -> list:
     p = TablesParams.from_dict(_evaluate_section(cfg).get("tables"))
     out = Path(p.output_dir)
     return ([out / f"{t}.{ext}" for t in TABLES for ext in ("md", "tex", "csv")]
-            + [out / "pose_speed_accuracy.csv", out / "metrics.json"])
+            + [out / SPEED_ACCURACY_CSV, out / TABLES_METRICS_JSON])
 
 
 def run(cfg: DictConfig, key: str) -> dict:
@@ -74,6 +75,6 @@ def run(cfg: DictConfig, key: str) -> dict:
     counts = {"patients": len(patients), "sequences": len(patients) * len(sequences),
               "pose_json": len(pose_docs), "depth_json": len(depth_docs), "depth_finetune_json": n_finetune}
     for name, content in report_files(tables, counts).items():    # metrics.json: timings go beside it
-        write = write_metrics_file if name == "metrics.json" else write_json if isinstance(content, dict) else write_text
+        write = write_metrics_file if name == TABLES_METRICS_JSON else write_json if isinstance(content, dict) else write_text
         write(Path(p.output_dir) / name, content)
     return counts

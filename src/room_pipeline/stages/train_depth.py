@@ -35,7 +35,7 @@ from .common import StageTimer, _finite, metadata, patient_paths, round_floats, 
 
 def outputs(cfg: DictConfig, patient: str) -> list:
     paths = patient_paths(cfg, patient)
-    return [paths.depth_model, paths.depth_finetune, paths.metrics("train_depth")]
+    return [paths.depth_model, paths.depth_finetune, paths.stage_metrics("train_depth")]
 
 
 def run(cfg: DictConfig, patient: str) -> dict:
@@ -58,7 +58,7 @@ def run(cfg: DictConfig, patient: str) -> dict:
             results = {name: unavailable(d, str(exc)) for name, d in datasets.items()}
             for which in ("pretrained", "finetuned"):            # no stale weights next to a failed run
                 checkpoint_path(cfg.output_dir, patient, which).unlink(missing_ok=True)
-            write_json(model_dir / "training.json", _finite(training))
+            write_json(paths.depth_training, _finite(training))
             write_json(paths.depth_finetune, without_timings({"datasets": results, "definition": DEFINITION})[0])
             write_metrics(paths, "train_depth", {"datasets": results, "training": training})
             return {"available": False, "reason": str(exc)}
@@ -69,10 +69,10 @@ def run(cfg: DictConfig, patient: str) -> dict:
     training = round_floats(finish_training_record(training, ft, p, str(torch.__version__), checkpoints,
                                                    timer.wall_s, time.process_time() - cpu0), 6)
     # timings go to the metrics only: the data files are the same bytes for the same data and seed
-    write_json(model_dir / "training.json",
+    write_json(paths.depth_training,
                _finite({**{k: v for k, v in training.items() if k != "times_s"},
                         "metadata": metadata("train_depth", patient, cfg, ("depth",))}))
-    write_text(model_dir / "training_log.csv", log_csv(ft.pre_losses, ft.ft_losses))
+    write_text(paths.depth_training_log, log_csv(ft.pre_losses, ft.ft_losses))
     results = ft.results
     doc = {"datasets": {k: round_floats(v, 6) if isinstance(v, dict) else v for k, v in results.items()},
            "training": training}

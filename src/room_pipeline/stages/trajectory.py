@@ -67,5 +67,5 @@ def run(cfg: DictConfig, key: str) -> dict:
                "target_reached": bool(traj.target.reached),
                "target_stop_distance_mm": round(traj.target.stop_distance * 1e3, 3),
                "wall_time_s": round(timer.wall_s, 3), "peak_rss_mb": round(timer.peak_rss_mb(), 1)}
-    write_metrics(paths, f"trajectory_{sequence}", metrics)
+    write_metrics(paths, "trajectory", metrics, sequence=sequence)
     return metrics

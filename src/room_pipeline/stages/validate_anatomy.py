@@ -28,7 +28,7 @@ SDF_BAND_M = 3e-3
 
 
 def outputs(cfg: DictConfig, patient: str) -> list:
-    return [patient_paths(cfg, patient).metrics("anatomy_validation")]
+    return [patient_paths(cfg, patient).stage_metrics("validate_anatomy")]
 
 
 
@@ -75,5 +75,5 @@ def run(cfg: DictConfig, patient: str) -> dict:
         "mesh": {"isolation": mesh_iso, "end_to_end": mesh_e2e},
         "wall_time_s": timer.wall_s, "peak_rss_mb": timer.peak_rss_mb(),
     })
-    write_metrics(paths, "anatomy_validation", metrics)
+    write_metrics(paths, "validate_anatomy", metrics)
     return metrics

@@ -20,7 +20,7 @@ from .common import StageTimer, patient_paths, read_json, round_floats, write_me
 
 
 def outputs(cfg: DictConfig, patient: str) -> list:
-    return [patient_paths(cfg, patient).metrics("centreline_validation")]
+    return [patient_paths(cfg, patient).stage_metrics("validate_centreline")]
 
 
 
@@ -42,5 +42,5 @@ def run(cfg: DictConfig, patient: str) -> dict:
     }
     metrics = round_floats({"checks": checks, "isolation": iso, "end_to_end": e2e,
                       "wall_time_s": timer.wall_s, "peak_rss_mb": timer.peak_rss_mb()})
-    write_metrics(paths, "centreline_validation", metrics)
+    write_metrics(paths, "validate_centreline", metrics)
     return metrics
