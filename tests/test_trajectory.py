@@ -515,6 +515,9 @@ def test_stop_at_wall_ends_the_insertion_where_the_tip_no_longer_fits(joint_plan
 #: existed (commit e97a839), centreline plan / joint plan: the switch off changes no byte of the plan
 PLAN_BEFORE_STOP_AT_WALL = {None: "5dc7bccc3965fd816b34d60e0291feb27c2f6bd2de7fc3cacb49e3e680d6ac3c",
                             "joint": "b30aecbe574ce90a598ff5d34546a574b45275114337ccfcabf6c3d729483bc7"}
+#: the joint plan's code defaults when the hash was recorded: max_rate_q3_mm_s was 50 in code (10 in conf, which
+#: the code now follows since session 9); the plan of before is made with the value it was made with
+OLD_JOINT_PLAN_CODE_DEFAULTS = {"max_rate_q3_mm_s": 50.0}
 
 
 @pytest.mark.parametrize("joint_plan", [None, "joint"])
@@ -524,7 +527,8 @@ def test_stop_at_wall_off_is_the_plan_of_before(joint_plan):
     import hashlib
     graph, fn = narrowing_tube()
     tr = plan_path(graph, graph.leaves()[0].id, fn,
-                   TrajectoryParams(joint_plan=None if joint_plan is None else {}, stop_at_wall=False, **CONE))
+                   TrajectoryParams(joint_plan=None if joint_plan is None else OLD_JOINT_PLAN_CODE_DEFAULTS,
+                                    stop_at_wall=False, **CONE))
     assert _TrajectoryParams().stop_at_wall is True                      # the default (conf/trajectory)
     assert tr.insertion_stop is None and "insertion_stop" not in tr.to_dict()
     assert tr.clearance.min() < 2.5 * MM                                # it does ask the tip into the wall
