@@ -167,6 +167,8 @@ def main() -> None:
     ap.add_argument("--from-run", default=None, metavar="OUTPUT_DIR",
                     help="render nothing: judge every rgb_noisy frame of OUTPUT_DIR/patient_*/sequence_* (a full default "
                          "run) against the fit and held-out frames, with per-frame clipping (realism_refit_run.{json,md})")
+    ap.add_argument("--tag", default="", help="--from-run: write realism_refit_run_TAG.{json,md}")
+    ap.add_argument("--no-ours", action="store_true", help="--from-run: the shared judges only (skip `room realism`)")
     ap.add_argument("--check", action="store_true", help="score the composed config (+ overrides) only, no fit")
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args()
@@ -179,7 +181,7 @@ def main() -> None:
     scratch.mkdir(parents=True, exist_ok=True)
     real = real_split(scratch)
     if a.from_run:
-        from_run(Path(a.from_run), scratch, real)
+        from_run(Path(a.from_run), scratch, real, a.tag, not a.no_ours)
         return
     outs = prepare_all(Path(a.inputs), scratch)
     env = {"load_avg_start": os.getloadavg()[0], "cores": os.cpu_count()}
@@ -309,8 +311,10 @@ def main() -> None:
     print("\n".join(md))
 
 
-def from_run(run: Path, scratch: Path, real: dict) -> None:
-    """Every noisy frame of a finished run, judged by the shared tools; clipping per sequence and frame."""
+def from_run(run: Path, scratch: Path, real: dict, tag: str = "", ours: bool = True) -> None:
+    """Every noisy frame of a finished run, judged by the shared tools and by ``room realism``
+    (:func:`room_pipeline.realism.evaluate` on every frame, ``ours``); clipping per sequence and frame.
+    Results: ``realism_refit_run{_tag}.{json,md}``."""
     from room_pipeline import realism as R
 
     env = {"load_avg_start": os.getloadavg()[0], "cores": os.cpu_count()}
@@ -336,10 +340,21 @@ def from_run(run: Path, scratch: Path, real: dict) -> None:
         j = judge(real[k], dst)
         res[k] = {**summary(j), "raw": j}
         print(k, res[k]["dE76"], res[k]["L_emd"], res[k]["lsd_db"], flush=True)
+    all_paths = sorted(dst.iterdir())
+    for k in (("fit", "heldout") if ours else ()):
+        o = R.evaluate(real[k], n=None, synth_paths=all_paths)
+        res[f"ours_{k}"] = {"dE76": o["real_vs_synth"]["dE76_mean_colour"], "L_emd": o["real_vs_synth"]["L_hist_emd"],
+                            "lsd_db": o["real_vs_synth"]["noise_lsd_db"],
+                            "clipped_mean": o["synth"]["clipped_fraction_all_frames"],
+                            "clipped_max": o["synth"]["clipped_max_all_frames"], "raw": o}
+        print("room realism", k, res[f"ours_{k}"]["dE76"], res[f"ours_{k}"]["L_emd"], res[f"ours_{k}"]["lsd_db"],
+              flush=True)
     res["env"] = {**env, "load_avg_end": os.getloadavg()[0], "cpu_s": round(time.process_time() - c0, 1)}
-    (RESULTS / "realism_refit_run.json").write_text(json.dumps(res, indent=1, default=str))
+    name = "realism_refit_run" + (f"_{tag}" if tag else "")
+    (RESULTS / f"{name}.json").write_text(json.dumps(res, indent=1, default=str))
+    cmd = f"python benchmarks/realism_refit.py --from-run {run}" + (f" --tag {tag}" if tag else "")
     md = ["# Every noisy frame of a finished run against the fit and held-out real frames", "",
-          f"`python benchmarks/realism_refit.py --from-run {run}`: {n} frames ({', '.join(r['sequence'] for r in per_seq)}), "
+          f"`{cmd}`: {n} frames ({', '.join(r['sequence'] for r in per_seq)}), "
           "as the run wrote them; judged by `../shared/tools/realism_check.py` (all frames, 256 px) and "
           "`noise_psd_check.py`; clipped = a channel >= 250 (the shared tool's rule) at full resolution.", "",
           "| sequence | frames | clipped mean | clipped worst frame | dark mean |", "|---|---|---|---|---|"]
@@ -351,8 +366,20 @@ def from_run(run: Path, scratch: Path, real: dict) -> None:
     for k in ("fit", "heldout", "heldout_brea"):
         md.append(f"| {k} | {len(list(real[k].iterdir()))} | {res[k]['dE76']:.2f} | {res[k]['L_emd']:.2f} | "
                   f"{res[k]['lsd_db']:.2f} |")
-    md += ["", f"Load average {env['load_avg_start']:.1f} -> {res['env']['load_avg_end']:.1f}."]
-    (RESULTS / "realism_refit_run.md").write_text("\n".join(md) + "\n")
+    if ours:
+        md += ["", "The project's own judge (`room realism`, `room_pipeline.realism.evaluate`, every frame, 256 px; noise "
+               "spectrum at 600 px; clipped over every frame at 256 px):", "",
+               "| real set | dE76 | L* EMD | noise LSD dB | clipped mean / worst frame | real vs real (halves) dE76 / EMD / LSD |",
+               "|---|---|---|---|---|---|"]
+        for k in ("fit", "heldout"):
+            o = res[f"ours_{k}"]
+            rr = o["raw"].get("real_vs_real", {})
+            md.append(f"| {k} | {o['dE76']:.2f} | {o['L_emd']:.2f} | {o['lsd_db']:.2f} | {100 * o['clipped_mean']:.3f} % / "
+                      f"{100 * o['clipped_max']:.3f} % | {rr.get('dE76_mean_colour', float('nan')):.2f} / "
+                      f"{rr.get('L_hist_emd', float('nan')):.2f} / {rr.get('noise_lsd_db', float('nan')):.2f} |")
+    md += ["", f"Load average {env['load_avg_start']:.1f} -> {res['env']['load_avg_end']:.1f}; "
+           f"{res['env']['cpu_s']} CPU s in this process (the shared tools run in subprocesses)."]
+    (RESULTS / f"{name}.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
 
