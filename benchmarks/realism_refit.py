@@ -28,7 +28,7 @@ frames (both are written).  Synthetic frames, real split lists and logs live und
 (default ``/tmp/room_realism_refit``); a rerun reuses the rows a previous run left there for the same glare
 and betas (``--fresh`` re-renders).
 
-Results: benchmarks/results/realism_refit.{json,md} (``--check``: realism_refit_check.{json,md}).
+Results: benchmarks/results/realism_refit.{json,md} (``--out``; ``--check``: realism_refit_check.{json,md}).
 """
 from __future__ import annotations
 
@@ -167,6 +167,7 @@ def main() -> None:
     ap.add_argument("--from-run", default=None, metavar="OUTPUT_DIR",
                     help="render nothing: judge every rgb_noisy frame of OUTPUT_DIR/patient_*/sequence_* (a full default "
                          "run) against the fit and held-out frames, with per-frame clipping (realism_refit_run.{json,md})")
+    ap.add_argument("--out", default="realism_refit", help="the fit's result files: benchmarks/results/OUT.{json,md}")
     ap.add_argument("--tag", default="", help="--from-run: write realism_refit_run_TAG.{json,md}")
     ap.add_argument("--no-ours", action="store_true", help="--from-run: the shared judges only (skip `room realism`)")
     ap.add_argument("--check", action="store_true", help="score the composed config (+ overrides) only, no fit")
@@ -282,9 +283,10 @@ def main() -> None:
            "heldout_frames": [p.name for p in sorted(real["heldout"].iterdir())], "rows": rows,
            "chosen": {k: best[k] for k in ("glare", "beta", "base_color", "target")},
            "env": {**env, "load_avg_end": os.getloadavg()[0], "cpu_s": round(time.process_time() - c_start, 1)}}
-    (RESULTS / "realism_refit.json").write_text(json.dumps(res, indent=1, default=str))
+    (RESULTS / f"{a.out}.json").write_text(json.dumps(res, indent=1, default=str))
     md = ["# Appearance refit with the composed renderer: colour, exposure target, veiling glare, noise amplitude", "",
-          f"`python benchmarks/realism_refit.py --stride {a.stride} --glare {a.glare} --beta {a.beta} "
+          f"`python benchmarks/realism_refit.py --inputs {a.inputs} --steps {a.steps} --stride {a.stride} --glare {a.glare} "
+          f"--beta {a.beta}{'' if a.out == 'realism_refit' else ' --out ' + a.out} "
           f"{' '.join(a.overrides)}`: every {a.stride}th pose of both default sequences, render + noise stages. "
           "Fit = the 45 BREA-Depth frames with index % 4 != 3 (what the noise profile was measured on too); held out = "
           "the other 15 + the 4 Lung-Odometry frames (19). Judges: `../shared/tools/realism_check.py`, "
@@ -307,7 +309,7 @@ def main() -> None:
                   f"{100 * r['clipped_mean']:.3f} % / {100 * r['clipped_max']:.3f} % |")
     md += ["", f"Load average {env['load_avg_start']:.1f} -> {res['env']['load_avg_end']:.1f}; {res['env']['cpu_s']} CPU s "
                "in this process (the judges run in subprocesses)."]
-    (RESULTS / "realism_refit.md").write_text("\n".join(md) + "\n")
+    (RESULTS / f"{a.out}.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
 
