@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The default RGB and Cycles presets against a 1024-sample Cycles reference, on the render stage's own scene.
+"""The default RGB and Cycles presets against a Cycles reference (1024 samples by default), on the render stage's own scene.
 
     python benchmarks/cycles_reference.py --inputs data/output/patient_000 --make-refs   # the references (slow)
     python benchmarks/cycles_reference.py --inputs data/output/patient_000             # the table
@@ -383,10 +383,11 @@ def speed(scene, views, names, args) -> None:
 def film_ev(scene, i: int) -> float:
     """The render stage's per-frame automatic exposure of pose ``i`` metered on that frame alone (EV)."""
     from room_pipeline.render.exposure import raw_exposures, smooth_exposures
+    from room_pipeline.render.params import indirect_config
 
     p = exposure_params_default()
     sc = view_scene(scene, i)
-    raw, lim = raw_exposures(sc, p)
+    raw, lim = raw_exposures(sc, p, indirect=indirect_config(render_params()))   # the meter sees the bounces too
     return float(smooth_exposures(raw, sc.timestamps, p, lim)[0])
 
 
@@ -406,7 +407,8 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
     import cv2
 
     from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
-    from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
+    from room_pipeline.render.params import raycast_config
+    from room_pipeline.render.raycast import RaycastRenderer
 
     doc = {"machine": {"nproc": os.cpu_count(), "cpu_threads": args.threads, "platform": platform.platform(),
                        "python": platform.python_version(), "load_avg_at_start": os.getloadavg(), "gpu": "none"},
@@ -438,11 +440,11 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
 
         sc = view_scene(scene, i)
         sc2 = dataclasses.replace(sc, film=dataclasses.replace(film, exposure_ev=ev, frame_ev=None))
-        variants = [(True, None, f"ray caster (default RGB: per-pixel appearance, interreflection "
-                                  f"{sc.material.interreflection})"),
-                    (False, None, "ray caster, appearance at the vertices (as Cycles)")]
+        variants = [(True, None, f"ray caster (default RGB: per-pixel appearance, {rp.indirect_bounces} bounces "
+                                  f"precomputed)"),
+                    (False, None, "ray caster, appearance at the vertices")]
         fit = RESULTS / "interreflection_fit.json"
-        if fit.exists():             # the fitted inter-reflection term (fitted on other views), if not the default
+        if fit.exists() and rp.indirect_bounces == 0:   # the old fitted window term, only without the bounces
             b = json.loads(fit.read_text())["best"]
             if b["interreflection"] != sc.material.interreflection:
                 variants.append((True, b, f"ray caster + fitted interreflection F {b['interreflection']}, "
@@ -454,9 +456,8 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
                                           interreflection_window_m=b["window_mm"] * 1e-3)
                 ev_b = film_ev(dataclasses.replace(scene, material=mat), i)
                 scv = dataclasses.replace(sc2, material=mat, film=dataclasses.replace(sc2.film, exposure_ev=ev_b))
-            rc = RaycastRenderer(scv, RaycastConfig(nthreads=args.threads, per_pixel_texture=per_pixel,
-                                                    shading_stride=rp.shading_stride))
-            rc.cast(0)
+            rc = RaycastRenderer(scv, dataclasses.replace(raycast_config(rp, args.threads), per_pixel_texture=per_pixel))
+            rc.render(0, ("rgb",))   # warm: the BVH, the precomputed transport and its albedo (once per mesh)
             rc._cache.clear()
             c0, w0 = time.process_time(), time.perf_counter()
             out = rc.render(0, ("rgb",))
@@ -525,13 +526,17 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
 
 def write_md(d: dict) -> None:
     m = d["machine"]
-    L = ["# The default RGB and Cycles against a 1024-sample Cycles reference (render stage's scene)", "",
-         f"`python benchmarks/cycles_reference.py --inputs {d['inputs']}` on {m['nproc']} CPU cores shared with "
+    a = d["args"]
+    L = [f"# The default RGB and Cycles against a {a['ref_spp']}-sample Cycles reference (render stage's scene)", "",
+         f"`python benchmarks/cycles_reference.py --inputs {d['inputs']} --views {a['views']} --res {a['res']} "
+         f"--ref-spp {a['ref_spp']}` on {m['nproc']} CPU cores shared with "
          f"other jobs (load average {m['load_avg_at_start'][0]:.1f} at start, {m['load_avg_at_end'][0]:.1f} at end; "
-         f"{m['cpu_threads']} threads); no GPU.  Scene: the render stage's default (per-pixel mucosa for the ray "
-         "caster, baked at the vertices for Cycles; tip light 1.1 mm off axis, cos^2.767; the view's automatic "
-         "exposure, veiling glare, sRGB, 8 bits for every method).  CPU s = process CPU time per frame (all "
-         "threads), scene built.", ""]
+         f"{m['cpu_threads']} threads); no GPU.  Scene: the render stage's default (the ray caster with its "
+         "precomputed inter-reflection and the appearance function per pixel; Cycles evaluating the same function "
+         "per shading point, OSL; tip light 1.1 mm off axis, cos^2.767; the view's automatic exposure metered as "
+         "the render stage meters it, veiling glare, sRGB, 8 bits for every method).  The reference renders the "
+         f"mesh subdivided {a['ref_subdivide']} times (the parent's smooth normals).  CPU s = process CPU time per "
+         "frame (all threads), scene and precomputed transport built.", ""]
     for ref in d["references"]:
         r = ref["ref"]
         half = r["halves"][0] if r["halves"] else {}

@@ -28,7 +28,7 @@ frames (both are written).  Synthetic frames, real split lists and logs live und
 (default ``/tmp/room_realism_refit``); a rerun reuses the rows a previous run left there for the same glare
 and betas (``--fresh`` re-renders).
 
-Results: benchmarks/results/realism_refit.{json,md} (``--check``: realism_refit_check.{json,md}).
+Results: benchmarks/results/realism_refit.{json,md} (``--out``; ``--check``: realism_refit_check.{json,md}).
 """
 from __future__ import annotations
 
@@ -167,6 +167,9 @@ def main() -> None:
     ap.add_argument("--from-run", default=None, metavar="OUTPUT_DIR",
                     help="render nothing: judge every rgb_noisy frame of OUTPUT_DIR/patient_*/sequence_* (a full default "
                          "run) against the fit and held-out frames, with per-frame clipping (realism_refit_run.{json,md})")
+    ap.add_argument("--out", default="realism_refit", help="the fit's result files: benchmarks/results/OUT.{json,md}")
+    ap.add_argument("--tag", default="", help="--from-run: write realism_refit_run_TAG.{json,md}")
+    ap.add_argument("--no-ours", action="store_true", help="--from-run: the shared judges only (skip `room realism`)")
     ap.add_argument("--check", action="store_true", help="score the composed config (+ overrides) only, no fit")
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args()
@@ -179,7 +182,7 @@ def main() -> None:
     scratch.mkdir(parents=True, exist_ok=True)
     real = real_split(scratch)
     if a.from_run:
-        from_run(Path(a.from_run), scratch, real)
+        from_run(Path(a.from_run), scratch, real, a.tag, not a.no_ours)
         return
     outs = prepare_all(Path(a.inputs), scratch)
     env = {"load_avg_start": os.getloadavg()[0], "cores": os.cpu_count()}
@@ -280,9 +283,10 @@ def main() -> None:
            "heldout_frames": [p.name for p in sorted(real["heldout"].iterdir())], "rows": rows,
            "chosen": {k: best[k] for k in ("glare", "beta", "base_color", "target")},
            "env": {**env, "load_avg_end": os.getloadavg()[0], "cpu_s": round(time.process_time() - c_start, 1)}}
-    (RESULTS / "realism_refit.json").write_text(json.dumps(res, indent=1, default=str))
+    (RESULTS / f"{a.out}.json").write_text(json.dumps(res, indent=1, default=str))
     md = ["# Appearance refit with the composed renderer: colour, exposure target, veiling glare, noise amplitude", "",
-          f"`python benchmarks/realism_refit.py --stride {a.stride} --glare {a.glare} --beta {a.beta} "
+          f"`python benchmarks/realism_refit.py --inputs {a.inputs} --steps {a.steps} --stride {a.stride} --glare {a.glare} "
+          f"--beta {a.beta}{'' if a.out == 'realism_refit' else ' --out ' + a.out} "
           f"{' '.join(a.overrides)}`: every {a.stride}th pose of both default sequences, render + noise stages. "
           "Fit = the 45 BREA-Depth frames with index % 4 != 3 (what the noise profile was measured on too); held out = "
           "the other 15 + the 4 Lung-Odometry frames (19). Judges: `../shared/tools/realism_check.py`, "
@@ -305,12 +309,14 @@ def main() -> None:
                   f"{100 * r['clipped_mean']:.3f} % / {100 * r['clipped_max']:.3f} % |")
     md += ["", f"Load average {env['load_avg_start']:.1f} -> {res['env']['load_avg_end']:.1f}; {res['env']['cpu_s']} CPU s "
                "in this process (the judges run in subprocesses)."]
-    (RESULTS / "realism_refit.md").write_text("\n".join(md) + "\n")
+    (RESULTS / f"{a.out}.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
 
-def from_run(run: Path, scratch: Path, real: dict) -> None:
-    """Every noisy frame of a finished run, judged by the shared tools; clipping per sequence and frame."""
+def from_run(run: Path, scratch: Path, real: dict, tag: str = "", ours: bool = True) -> None:
+    """Every noisy frame of a finished run, judged by the shared tools and by ``room realism``
+    (:func:`room_pipeline.realism.evaluate` on every frame, ``ours``); clipping per sequence and frame.
+    Results: ``realism_refit_run{_tag}.{json,md}``."""
     from room_pipeline import realism as R
 
     env = {"load_avg_start": os.getloadavg()[0], "cores": os.cpu_count()}
@@ -336,10 +342,21 @@ def from_run(run: Path, scratch: Path, real: dict) -> None:
         j = judge(real[k], dst)
         res[k] = {**summary(j), "raw": j}
         print(k, res[k]["dE76"], res[k]["L_emd"], res[k]["lsd_db"], flush=True)
+    all_paths = sorted(dst.iterdir())
+    for k in (("fit", "heldout") if ours else ()):
+        o = R.evaluate(real[k], n=None, synth_paths=all_paths)
+        res[f"ours_{k}"] = {"dE76": o["real_vs_synth"]["dE76_mean_colour"], "L_emd": o["real_vs_synth"]["L_hist_emd"],
+                            "lsd_db": o["real_vs_synth"]["noise_lsd_db"],
+                            "clipped_mean": o["synth"]["clipped_fraction_all_frames"],
+                            "clipped_max": o["synth"]["clipped_max_all_frames"], "raw": o}
+        print("room realism", k, res[f"ours_{k}"]["dE76"], res[f"ours_{k}"]["L_emd"], res[f"ours_{k}"]["lsd_db"],
+              flush=True)
     res["env"] = {**env, "load_avg_end": os.getloadavg()[0], "cpu_s": round(time.process_time() - c0, 1)}
-    (RESULTS / "realism_refit_run.json").write_text(json.dumps(res, indent=1, default=str))
+    name = "realism_refit_run" + (f"_{tag}" if tag else "")
+    (RESULTS / f"{name}.json").write_text(json.dumps(res, indent=1, default=str))
+    cmd = f"python benchmarks/realism_refit.py --from-run {run}" + (f" --tag {tag}" if tag else "")
     md = ["# Every noisy frame of a finished run against the fit and held-out real frames", "",
-          f"`python benchmarks/realism_refit.py --from-run {run}`: {n} frames ({', '.join(r['sequence'] for r in per_seq)}), "
+          f"`{cmd}`: {n} frames ({', '.join(r['sequence'] for r in per_seq)}), "
           "as the run wrote them; judged by `../shared/tools/realism_check.py` (all frames, 256 px) and "
           "`noise_psd_check.py`; clipped = a channel >= 250 (the shared tool's rule) at full resolution.", "",
           "| sequence | frames | clipped mean | clipped worst frame | dark mean |", "|---|---|---|---|---|"]
@@ -351,8 +368,20 @@ def from_run(run: Path, scratch: Path, real: dict) -> None:
     for k in ("fit", "heldout", "heldout_brea"):
         md.append(f"| {k} | {len(list(real[k].iterdir()))} | {res[k]['dE76']:.2f} | {res[k]['L_emd']:.2f} | "
                   f"{res[k]['lsd_db']:.2f} |")
-    md += ["", f"Load average {env['load_avg_start']:.1f} -> {res['env']['load_avg_end']:.1f}."]
-    (RESULTS / "realism_refit_run.md").write_text("\n".join(md) + "\n")
+    if ours:
+        md += ["", "The project's own judge (`room realism`, `room_pipeline.realism.evaluate`, every frame, 256 px; noise "
+               "spectrum at 600 px; clipped over every frame at 256 px):", "",
+               "| real set | dE76 | L* EMD | noise LSD dB | clipped mean / worst frame | real vs real (halves) dE76 / EMD / LSD |",
+               "|---|---|---|---|---|---|"]
+        for k in ("fit", "heldout"):
+            o = res[f"ours_{k}"]
+            rr = o["raw"].get("real_vs_real", {})
+            md.append(f"| {k} | {o['dE76']:.2f} | {o['L_emd']:.2f} | {o['lsd_db']:.2f} | {100 * o['clipped_mean']:.3f} % / "
+                      f"{100 * o['clipped_max']:.3f} % | {rr.get('dE76_mean_colour', float('nan')):.2f} / "
+                      f"{rr.get('L_hist_emd', float('nan')):.2f} / {rr.get('noise_lsd_db', float('nan')):.2f} |")
+    md += ["", f"Load average {env['load_avg_start']:.1f} -> {res['env']['load_avg_end']:.1f}; "
+           f"{res['env']['cpu_s']} CPU s in this process (the shared tools run in subprocesses)."]
+    (RESULTS / f"{name}.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
 

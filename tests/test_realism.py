@@ -231,6 +231,50 @@ def test_bifurcation_close_up_and_a_fold_in_shadow():
     assert_sane(outs, evs)
 
 
+def fold_in_front_of_the_led() -> Mesh:
+    """A 5 mm tube and a fold across it: a 0.3 mm thick shelf (y -0.9..-0.6 mm, |x| <= 4.9 mm, z 8..40 mm)
+    between the scope's LED (1.1 mm below the lens, y -1.1 mm) and everything the lens at (0, 0, 10 mm)
+    sees: its upper face and the wall above it get no direct light, only what bounces round the fold."""
+    t = tube(radius=5 * MM, z0=-5 * MM, z1=80 * MM, n_z=60)
+    xs, zs = np.linspace(-4.9 * MM, 4.9 * MM, 12), np.linspace(8 * MM, 40 * MM, 24)
+    idx = np.arange(12 * 24).reshape(12, 24)
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:], idx[1:, 1:]
+    f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([b, d, c], -1).reshape(-1, 3)])
+    vs, fs, off = [t.vertices], [t.faces], len(t.vertices)
+    for y, flip in ((-0.6 * MM, False), (-0.9 * MM, True)):
+        X, Z = np.meshgrid(xs, zs, indexing="ij")
+        vs.append(np.stack([X, np.full_like(X, y), Z], -1).reshape(-1, 3))
+        fs.append((f[:, ::-1] if flip else f) + off)
+        off += 12 * 24
+    return Mesh(np.concatenate(vs), np.concatenate(fs))
+
+
+def test_a_frame_in_the_shadow_of_a_fold():
+    """Hard case: the whole view in a fold's shadow.  With the default renderer (no per-pixel shadow ray) the
+    frame is sane; with ``RaycastConfig.direct_shadows`` the wall behind the fold loses its direct light
+    (what Cycles renders), the gain control lifts the bounced light, and the frame is still sane."""
+    sc = textured_scene(fold_in_front_of_the_led(), [look([0, 0, 10 * MM], [0, 0, 1.0])], straight_graph())
+    ind = default_indirect()
+    evs = exposure_track(sc, EXP, indirect=ind)
+    outs, _ = render_auto(sc)
+    assert_sane(outs, evs)
+    fixed = dataclasses.replace(sc, film=Film(exposure_ev=0.0))
+    lit = RaycastRenderer(fixed, RaycastConfig(indirect=ind)).render(0, {"rgb"})["rgb_linear"].mean(-1)
+    r = RaycastRenderer(fixed, RaycastConfig(indirect=ind, direct_shadows=True))
+    shadow = r.render(0, {"rgb"})["rgb_linear"].mean(-1)
+    c = r.cast(0)
+    blocked = r._in_shadow(0, c, r.camera_normals(0, c)[0])
+    assert blocked.mean() > 0.9                               # the fold hides (nearly) the whole view from the LED
+    assert np.all(shadow <= lit + 1e-9) and shadow.sum() < 0.5 * lit.sum()
+    assert np.all(np.isfinite(shadow)) and shadow.max() > 0   # the bounced light remains
+    # without the fold nothing the lens sees is hidden from the LED: the shadow rays change nothing
+    open_tube = textured_scene(tube(radius=5 * MM, z0=-5 * MM, z1=80 * MM, n_z=60), fixed.poses, straight_graph(),
+                               film=Film(exposure_ev=0.0))
+    a = RaycastRenderer(open_tube, RaycastConfig(indirect=ind)).render(0, {"rgb"})["rgb"]
+    b = RaycastRenderer(open_tube, RaycastConfig(indirect=ind, direct_shadows=True)).render(0, {"rgb"})["rgb"]
+    assert np.abs(a.astype(int) - b).max() <= 1
+
+
 def test_nothing_lit_gives_black_not_nan_and_bounded_exposure():
     mesh = tube(radius=5 * MM, z0=-5 * MM, z1=60 * MM)
     sc = textured_scene(mesh, [look([0, 0, -50 * MM], [0, 0, -1.0])], straight_graph())   # looking away: no hit

@@ -114,6 +114,13 @@ class RaycastConfig:
         trachea 38.2 -> 38.9 dB, bifurcation 37.6 -> 38.9 dB, distal 41.3 -> 41.4 dB,
         benchmarks/results/realism_indirect_grid.md).  Without ``per_pixel_texture`` the
         transport uses the point bake, as the pixels do.
+    direct_shadows: a shadow ray from every hit to the tip light for the per-pixel direct term (True), or
+        none (False, default: the light sits next to the lens, so what the camera sees is lit, as
+        :mod:`~room_pipeline.render.shading` assumes).  With the LED off the optical centre
+        (``TipLight.offset_m``) a fold within a few mm of the tip can hide from the light walls the lens
+        still sees (``tests/test_realism.py::test_a_frame_in_the_shadow_of_a_fold``); off, those walls are
+        lit as if nothing were between.  One more cast per frame; not the default (the default RGB's figures
+        were measured without it).  The inter-reflection's vertex direct light always has shadow rays.
     """
 
     smooth_normals: bool = True
@@ -126,6 +133,7 @@ class RaycastConfig:
     shading_stride: int = 2
     indirect: IndirectConfig = IndirectConfig()
     transport_albedo: str = "area_mean"
+    direct_shadows: bool = False
 
     def __post_init__(self) -> None:
         if self.transport_albedo not in ("area_mean", "point"):
@@ -465,6 +473,8 @@ class RaycastRenderer:
         alb = self.albedo_per_pixel(i, c) if self._per_pixel else self.albedo(c)
         if np.any(np.asarray(light.offset_m) != 0):
             lin = shade_linear(self.camera_points(c), normals, c.hit, mat, light, alb)
+            if self.config.direct_shadows:
+                lin[self._in_shadow(i, c, normals)] = 0.0
         else:       # light at the camera: cos = -(n . ray) / |ray|, distance^2 = depth^2 |ray|^2
             cos = -n_dot_ray * self._inv_ray_len
             d2 = c.depth * c.depth * self._ray_len2
@@ -474,6 +484,21 @@ class RaycastRenderer:
         if self.config.indirect.bounces > 0:
             lin += self.indirect_radiance(i, c, alb, -n_dot_ray * self._inv_ray_len, normals)
         return lin
+
+    def _in_shadow(self, i: int, c: Cast, normals: np.ndarray, eps_m: float = 1e-5) -> np.ndarray:
+        """(H, W) bool: hits with mesh between them and the tip light (one shadow ray each, started ``eps_m``
+        off the surface along the camera-facing normal)."""
+        pose = np.asarray(self.scene.poses[self._index(i)], dtype=np.float64)
+        R, t = pose[:3, :3], pose[:3, 3] - self.origin
+        p = self.camera_points(c)[c.hit].astype(np.float64) + eps_m * normals[c.hit]
+        o = p @ R.T + t
+        d = (np.asarray(self.scene.light.offset_m, dtype=np.float64) - p) @ R.T
+        out = self._rc.cast_rays(self._o3d.core.Tensor(np.concatenate([o, d], 1).astype(np.float32)),
+                                 nthreads=self.config.nthreads)
+        self.cast_count += 1
+        mask = np.zeros(c.hit.shape, bool)
+        mask[c.hit] = out["t_hit"].numpy() < 1.0 - 1e-4
+        return mask
 
     @property
     def radiosity(self) -> Radiosity:
