@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "bronchoscopy_frames" / "brea_depth"
 TEX = MucosaTexture()
 CAM = CameraIntrinsics.from_fov(64, 64, 85.0)
-# the default scope light: LED 1.1 mm off the optical centre, spot mu 2.767 (EndoMapper)
+# the EndoMapper scope light (the default is isotropic since session 9): LED 1.1 mm off the optical centre, spot mu 2.767 (EndoMapper)
 LIGHT = TipLight(offset_m=(0.0, -1.1 * MM, 0.0), spot_exponent=2.767)
 EXP = ExposureParams(target=0.43, min_ev=-12.0, max_ev=12.0)
 

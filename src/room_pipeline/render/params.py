@@ -36,7 +36,7 @@ class RenderParams:
     near_mm: float = 0.1
     far_mm: float = 500.0
     distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)
-    base_color: tuple = (0.736, 0.49, 0.536)
+    base_color: tuple = (0.682, 0.518, 0.553)
     roughness: float = 0.35
     specular: float = 0.5
     interreflection: float = 0.0
@@ -48,12 +48,12 @@ class RenderParams:
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
     light_offset_mm: tuple = (0.0, -1.1, 0.0)
-    light_spot_exponent: float = 2.767
+    light_spot_exponent: float = 0.0
     light_falloff: str = "inverse_square"
     light_falloff_length_mm: float = 20.0
     exposure_ev: float | None = None
     auto_exposure: str = "per_frame"
-    auto_exposure_target: float = 0.352
+    auto_exposure_target: float = 0.318
     auto_exposure_percentile: float = 95.0
     auto_exposure_smoothing_s: float = 0.3
     auto_exposure_min_ev: float = -12.0
