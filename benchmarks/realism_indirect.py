@@ -144,13 +144,14 @@ def to8(lin, film, ev):
 
 
 def raycast_linear(sc, per_pixel: bool, indirect, threads: int, stride: int = 2, rc_cache: dict | None = None,
-                   transport_albedo: str = "area_mean"):
+                   transport_albedo: str = "area_mean", direct_shadows: bool = False):
     """Linear radiance (exposure 0, no vignetting) of the ray caster, its CPU s and build CPU s."""
     from room_pipeline.render.raycast import RaycastConfig, RaycastRenderer
 
     sc0 = dataclasses.replace(sc, film=dataclasses.replace(sc.film, exposure_ev=0.0, frame_ev=None, vignetting=0.0))
     rc = RaycastRenderer(sc0, RaycastConfig(nthreads=threads, per_pixel_texture=per_pixel, shading_stride=stride,
-                                            indirect=indirect, transport_albedo=transport_albedo))
+                                            indirect=indirect, transport_albedo=transport_albedo,
+                                            direct_shadows=direct_shadows))
     b0 = time.process_time()
     if indirect.bounces > 0:
         rc.radiosity
@@ -293,7 +294,8 @@ def tiles(scene, views, names, normals, args) -> None:
         cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64)
         lin_v, cpu_v, build_v = raycast_linear(sc, False, cfg, args.threads)
         lin_p, cpu_p, build_p = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride,
-                                               transport_albedo=args.transport_albedo)
+                                               transport_albedo=args.transport_albedo,
+                                               direct_shadows=rp.direct_shadows)
         builds = {LABEL_VERTEX: build_v, LABEL_PRODUCT: build_p, LABEL_PRODUCT_VS_BAKE: build_p}
         ev = metered_ev(lin_p, film)                    # the frame's exposure, metered on the product's frame
         boxes = grid_boxes(args.res, args.tile, args.grid_tiles) if args.grid_tiles else tile_boxes(args.res, args.tile)

@@ -45,6 +45,7 @@ class RenderParams:
     indirect_rays_per_point: int = 64
     indirect_seed: int = 0
     indirect_shadows: bool = True
+    direct_shadows: bool = False
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
     light_offset_mm: tuple = (0.0, -1.1, 0.0)
@@ -160,7 +161,8 @@ def raycast_config(p: "RenderParams", nthreads: int = 0):
     """The ray caster's configuration of the render config."""
     from .raycast import RaycastConfig
 
-    return RaycastConfig(nthreads=nthreads, shading_stride=p.shading_stride, indirect=indirect_config(p))
+    return RaycastConfig(nthreads=nthreads, shading_stride=p.shading_stride, indirect=indirect_config(p),
+                         direct_shadows=p.direct_shadows)
 
 
 def texture_params(d: Mapping[str, Any] | None) -> MucosaTexture:
