@@ -601,6 +601,20 @@ def test_finetune_table_reads_train_depth_record(tmp_path):
     assert rows[("simcol", "after fine-tuning")]["L1 (mm)"] == "-"
 
 
+def test_table_3_simcol_note_states_this_runs_rows():
+    """The note under Table III quotes the simcol rows of the same table (no figures from another run)."""
+    from room_pipeline.evaluate.tables import finetune_table
+
+    b = {"L1_mm": 3.5, "AbsRel": 0.12, "RMSE_mm": 7.6, "delta1": 0.85}
+    a = {"L1_mm": 4.0, "AbsRel": 0.15, "RMSE_mm": 7.0, "delta1": 0.75}
+    doc = {"datasets": {"simcol": {"available": True, "reason": None, "before": b, "after": a}}}
+    note = next(n for n in finetune_table([doc]).notes if n.startswith("SimCol"))
+    assert "L1 3.5 -> 4 mm" in note and "delta1 85 -> 75 %" in note and "better on 1 of 4 scores" in note
+    doc["datasets"]["simcol"]["after"] = {**b, "L1_mm": 3.0, "AbsRel": 0.1, "RMSE_mm": 7.0, "delta1": 0.9}
+    assert "better on every score" in next(n for n in finetune_table([doc]).notes if n.startswith("SimCol"))
+    assert next(n for n in finetune_table([]).notes if n.startswith("SimCol")).startswith("SimCol was not scored")
+
+
 def test_table_3_other_anatomy_from_evaluate_depth(tmp_path):
     """other_anatomy = evaluate_depth's cnn_pretrained (before) / cnn (after) on the non-training patients."""
     from room_pipeline.evaluate.reports import eval_patients
