@@ -74,7 +74,7 @@ def main() -> None:
                   f"{r['backbone_points_max']} | {r['sequence_folder_bytes']} | "
                   f"{100.0 * added / max(r['sequence_folder_bytes'], 1):.3f} % |")
     md += ["", "The sequence folder of a simulated-only run holds no frames; a rendered default sequence is "
-           "866 MB (README, benchmarks/results/sequence_bytes.md)."]
+           "about 0.7 GB (README, benchmarks/results/sequence_bytes.md)."]
     (RESULTS / "simulation_record_bytes.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
