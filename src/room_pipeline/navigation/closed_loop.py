@@ -116,6 +116,7 @@ class EpisodeParams:
     retract_force_n: float = 0.0        # > 0: retract while the last period's peak contact force exceeded this (N)
     retract_mm_s: float = 2.0           # ... at this speed
     forward_trace: bool = False         # the shaft's path grows by the tip's advance along its view only
+    shaft: str = "trace"                # trace: the shaft follows the tip's own path; lumen: the airway's centreline
     seed: int = 0                       # actuation delay draw (and the planner's samples: planner.seed + step)
 
     def __post_init__(self) -> None:
@@ -132,6 +133,8 @@ class EpisodeParams:
                 raise ConfigError(f"navigate.episode.{name} must be >= 0, got {v!r}")
         if self.tip_control not in ("point", "path"):
             raise ConfigError(f"navigate.episode.tip_control must be point or path, got {self.tip_control!r}")
+        if self.shaft not in ("trace", "lumen"):
+            raise ConfigError(f"navigate.episode.shaft must be trace or lumen, got {self.shaft!r}")
         if self.image_px < 8:
             raise ConfigError("navigate.episode.image_px must be >= 8")
         if not 0 < self.reach_fraction <= 1 or not 0 < self.dark_quantile < 1:
@@ -193,6 +196,65 @@ class Trace:
         return self._route
 
 
+class LumenShaft:
+    """The passive shaft conforming to the lumen: the bending segment's base slides along the airway's
+    centreline from the trachea to the branch the tip is in (``shaft: lumen``).
+
+    A real bronchoscope's insertion tube is passive and flexible: pushed through the airway, the walls
+    bend it along the lumen, and only the tip's bending section is steered.  Modelled kinematically, as the
+    ``trace`` shaft: its path is the centreline polyline root -> the tip's current branch (nearest
+    centreline point, :meth:`Airways.locate`), resampled every ``step`` m and smoothed (Gaussian, ``sigma``
+    m: the graph's joints have kinks a shaft does not make), with a rotation-minimising frame started from
+    the start pose's x.  Any two such paths share their frames up to ~4 ``sigma`` before the fork, and the
+    base is ``l`` behind the tip, so a change of branch does not move the base.  The shaft is the world's
+    (physics), not the policy's: the policy still sees only images.  ``s_end``: the tip's arclength along
+    the path (m).
+    """
+
+    def __init__(self, airways: Airways, pose: np.ndarray, step: float = 1e-3, sigma: float = 3e-3) -> None:
+        self.airways, self.step, self.sigma = airways, step, sigma
+        self.x0 = pose[:3, 0].copy()
+        self.branch = airways.graph.root.id
+        self._cache: dict[int, Route] = {}
+        self.s_end = self._arclength(pose[:3, 3])
+
+    def _build(self, branch: int) -> Route:
+        if branch not in self._cache:
+            P, s = self.airways.route_polyline(branch)
+            n = int(s[-1] / self.step) + 1
+            si = np.arange(n) * self.step
+            Q = np.stack([np.interp(si, s, P[:, k]) for k in range(3)], axis=1)
+            Q = ndimage.gaussian_filter1d(Q, self.sigma / self.step, axis=0, mode="nearest")
+            si = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Q, axis=0), axis=1))])
+            keep = np.concatenate([[True], np.diff(si) > 1e-9])
+            Q, si = Q[keep], si[keep]
+            t = np.gradient(Q, si, axis=0)
+            t /= np.linalg.norm(t, axis=1, keepdims=True)
+            X = np.zeros_like(Q)
+            x = self.x0 - (self.x0 @ t[0]) * t[0]
+            for i in range(len(Q)):
+                x = x - (x @ t[i]) * t[i]
+                x = x / np.linalg.norm(x)
+                X[i] = x
+            R = np.zeros((len(Q), 3, 3))
+            R[:, :, 0] = X
+            self._cache[branch] = Route(Q, si, R)
+        return self._cache[branch]
+
+    def _arclength(self, p: np.ndarray) -> float:
+        r = self._build(self.branch)
+        return float(r.s[int(np.argmin(np.linalg.norm(r.P - p, axis=1)))])
+
+    def extend(self, p: np.ndarray, z: np.ndarray | None = None) -> None:
+        """Follow the tip at ``p`` (m) into its branch (``z`` unused: the lumen, not the tip, shapes the shaft)."""
+        self.branch = self.airways.locate(p)[0]
+        self.s_end = self._arclength(p)
+
+    @property
+    def route(self) -> Route:
+        return self._build(self.branch)
+
+
 # --------------------------------------------------------------------------- the episode
 
 
@@ -252,7 +314,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
     eyes = _Eyes(patient.mesh, cam, rgb=params.policy == "darkest" or depth_source is not None)
 
     pose0 = start_pose(patient.graph, params.start_offset_mm * MM)
-    trace = Trace(pose0)
+    trace = Trace(pose0) if params.shaft == "trace" else LumenShaft(airways, pose0)
     sim = ScopeSim(sim_params, geometry)
     try:
         sim.set_wall(patient.collision.vertices, patient.collision.faces)
