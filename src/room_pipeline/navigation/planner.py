@@ -68,6 +68,8 @@ class PlannerParams:
     opening_size: float = 0.2             # openings: local-maximum window, fraction of the image width
     deep_fraction: float = 0.8            # the goal is among an opening's free points this deep (of its deepest)
     min_region_px: int = 3                # openings owning fewer free candidates (sub-sampled pixels) are ignored
+    single_opening: str = "side"          # with a command and one opening: side = its deep point farthest the
+                                          # commanded way; centre = its deepest spot (the command only picks openings)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -84,6 +86,8 @@ class PlannerParams:
             raise ConfigError("navigate.planner.far_fraction must be in (0, 1]")
         if self.min_length_mm > self.max_length_mm:
             raise ConfigError("navigate.planner.min_length_mm must be <= max_length_mm")
+        if self.single_opening not in ("side", "centre"):
+            raise ConfigError(f"navigate.planner.single_opening must be side or centre, got {self.single_opening!r}")
         if self.margin_mm < 0 or self.unobserved_mm < 0:
             raise ConfigError("navigate.planner.margin_mm and unobserved_mm must be >= 0")
 
@@ -209,7 +213,7 @@ def choose_goal(cloud: LocalCloud, params: PlannerParams, command: np.ndarray | 
     # with a command and a single opening (the next bifurcation not resolved yet), its deep free point lying
     # farthest the commanded way, so the tip is already on that side when the two openings part
     deep = inside[z[inside] >= params.deep_fraction * z[inside].max()]
-    if command is not None and len(regions) == 1:
+    if command is not None and len(regions) == 1 and params.single_opening == "side":
         j = deep[int(np.argmax(idx[deep][:, ::-1] @ np.asarray(command, float)))]
     else:
         j = deep[np.argmin(((idx[deep] - cents[pick]) ** 2).sum(axis=1))]
