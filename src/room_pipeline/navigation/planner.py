@@ -68,6 +68,8 @@ class PlannerParams:
     opening_size: float = 0.2             # openings: local-maximum window, fraction of the image width
     deep_fraction: float = 0.8            # the goal is among an opening's free points this deep (of its deepest)
     min_region_px: int = 3                # openings owning fewer free candidates (sub-sampled pixels) are ignored
+    w_centre: float = 0.0                 # weight of the centring term (0: off)
+    centre_mm: float = 2.0                # ... which charges path points nearer the cloud than radius + margin + this
     single_opening: str = "side"          # with a command and one opening: side = its deep point farthest the
                                           # commanded way; centre = its deepest spot (the command only picks openings)
     seed: int = 0
@@ -88,6 +90,8 @@ class PlannerParams:
             raise ConfigError("navigate.planner.min_length_mm must be <= max_length_mm")
         if self.single_opening not in ("side", "centre"):
             raise ConfigError(f"navigate.planner.single_opening must be side or centre, got {self.single_opening!r}")
+        if self.w_centre < 0 or self.centre_mm < 0:
+            raise ConfigError("navigate.planner.w_centre and centre_mm must be >= 0")
         if self.margin_mm < 0 or self.unobserved_mm < 0:
             raise ConfigError("navigate.planner.margin_mm and unobserved_mm must be >= 0")
 
@@ -304,12 +308,17 @@ def plan_path(cloud: LocalCloud, goal: np.ndarray, params: PlannerParams,
         cut = np.argmax(-dg, axis=1)                          # closest point to the goal: the path ends there
         M = P.shape[1]
         keep = np.arange(M)[None, :] <= cut[:, None]
-        _, into, behind = _violations(P, tree, cloud, r_opt, unobs)
+        dist, into, behind = _violations(P, tree, cloud, r_opt, unobs)
         v = np.where(keep, into + behind, 0.0)
         cnt = keep.sum(axis=1)
+        if params.w_centre > 0:      # centring: mean shortfall of the clearance below radius + margin + centre_mm
+            v_c = np.where(keep & (P[:, :, 2] >= unobs), np.maximum(0.0, r_opt + params.centre_mm * MM - dist), 0.0)
+            centre = params.w_centre * v_c.sum(axis=1) / cnt
+        else:
+            centre = 0.0
         bend = (np.linalg.norm(K, axis=2) ** 2).mean(axis=1) / kmax ** 2
         cost = dg[np.arange(len(K)), cut] + params.w_collision * (v.max(axis=1) + v.sum(axis=1) / cnt) \
-            + params.w_bending * s[cut] * bend
+            + params.w_bending * s[cut] * bend + centre
         return cost, P, T, s, cut
 
     for _ in range(params.iterations):
