@@ -92,7 +92,7 @@ from ..robot.sim_params import SimParams
 from .airways import COMMANDS, Airways, Patient, check_target, generation_targets, operator_command, start_pose  # noqa: F401
 from .lumen import TrueLumen
 from .perception import back_project
-from .planner import PlannerParams, choose_goal, plan_path
+from .planner import PlannerParams, choose_goal, free_centre, plan_path
 from .shaft import LumenShaft, Trace  # noqa: F401
 from .tip_control import _model_error, aim_command, path_command, reach_command  # noqa: F401
 
@@ -124,6 +124,9 @@ class EpisodeParams:
     dark_quantile: float = 0.05         # darkest: pixels at or below this luminance quantile form the dark regions
     tip_control: str = "point"          # point: bend toward the look-ahead point; path: put the tip on the path;
                                         # aim: turn the view toward the point aim_mm along the plan / route / ray
+    depth_target: str = "plan"          # depth policy's tip target: plan (lookahead_mm along the plan) | free_centre
+                                        # (centre of the free lumen centre_depth_mm ahead, in the goal's opening)
+    centre_depth_mm: float = 10.0
     aim_mm: float = 20.0                # aim: how far along the plan / route / dark ray the view is turned to
     retract_force_n: float = 0.0        # > 0: retract while the last period's peak contact force exceeded this (N)
     retract_mm_s: float = 2.0           # ... at this speed
@@ -136,7 +139,7 @@ class EpisodeParams:
         if self.policy not in POLICIES:
             raise ConfigError(f"navigate.episode.policy must be one of {POLICIES}, got {self.policy!r}")
         for name in ("control_rate_hz", "max_time_s", "speed_mm_s", "fov_deg", "lookahead_mm", "start_offset_mm",
-                     "wrong_branch_mm", "stall_time_s", "physics_step_s", "retract_mm_s", "aim_mm"):
+                     "wrong_branch_mm", "stall_time_s", "physics_step_s", "retract_mm_s", "aim_mm", "centre_depth_mm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"navigate.episode.{name} must be > 0, got {v!r}")
@@ -146,6 +149,8 @@ class EpisodeParams:
                 raise ConfigError(f"navigate.episode.{name} must be >= 0, got {v!r}")
         if self.tip_control not in ("point", "path", "aim"):
             raise ConfigError(f"navigate.episode.tip_control must be point, path or aim, got {self.tip_control!r}")
+        if self.depth_target not in ("plan", "free_centre"):
+            raise ConfigError(f"navigate.episode.depth_target must be plan or free_centre, got {self.depth_target!r}")
         if self.shaft not in ("trace", "lumen"):
             raise ConfigError(f"navigate.episode.shaft must be trace or lumen, got {self.shaft!r}")
         if self.image_px < 8:
@@ -318,6 +323,9 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 else:
                     pl = plan_path(cloud, goal.point, dataclasses.replace(planner, seed=planner.seed + k), tree)
                     pc, tc = pl.at(params.lookahead_mm * MM)
+                    if params.depth_target == "free_centre":
+                        fc = free_centre(cloud, planner, goal.point, params.centre_depth_mm * MM, tree)
+                        pc = pc if fc is None else fc
                     tgt = tip[:3, :3] @ pc + p_tip
                     aim = tip[:3, :3] @ pl.at(min(params.aim_mm * MM, pl.length))[0] + p_tip
                     tan = tip[:3, :3] @ tc

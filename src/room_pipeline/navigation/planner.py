@@ -346,3 +346,39 @@ def _clip(K: np.ndarray, kmax: float) -> np.ndarray:
     """Curvature vectors scaled down to |k| <= kmax (last axis)."""
     n = np.linalg.norm(K, axis=-1, keepdims=True)
     return K * np.minimum(1.0, kmax / np.maximum(n, 1e-12))
+
+
+def free_centre(cloud: LocalCloud, params: PlannerParams, goal: np.ndarray, depth_m: float,
+                tree: cKDTree | None = None, band_m: float = 1.5e-3) -> np.ndarray | None:
+    """The centre of the free lumen ``depth_m`` ahead (camera frame, m), on the way to ``goal``; None if none.
+
+    The free candidates of :func:`choose_goal` (depth samples pulled back along their rays, clearance to the
+    cloud >= scope radius + margin) within ``band_m`` of the planar depth ``depth_m`` form the free cross-
+    section(s) of the lumen there; the one (8-connected in the image) reaching nearest to the goal's pixel is
+    the lumen the goal lies in, and its clearance^2-weighted mean point is its centre (the most central free
+    points weigh most).  A tip steered to it stays mid-lumen and takes the goal's opening at a bifurcation;
+    being a point of the anatomy (not of the view), it does not move as the view turns.
+    """
+    if len(cloud.points) == 0:
+        return None
+    tree = tree or cKDTree(cloud.points)
+    need = (params.scope_radius_mm + params.margin_mm) * MM
+    c, clear, idx = _candidates(cloud, tree, need)
+    sel = (clear >= need * 0.999) & (np.abs(c[:, 2] - depth_m) <= band_m)
+    if not sel.any():
+        return None
+    c, clear, idx = c[sel], clear[sel], idx[sel]
+    h, w = cloud.depth.shape
+    mask = np.zeros((h, w), bool)
+    rr, cc = np.clip(idx[:, 0], 0, h - 1), np.clip(idx[:, 1], 0, w - 1)
+    mask[rr, cc] = True
+    lab, n = ndimage.label(ndimage.binary_dilation(mask, iterations=1), structure=np.ones((3, 3)))
+    own = lab[rr, cc]
+    g = np.asarray(goal, float)
+    u, v = cloud.camera.project_normalized(g[0] / max(g[2], 1e-9), g[1] / max(g[2], 1e-9))
+    gpx = np.array([v / cloud.stride, u / cloud.stride])
+    d2 = ((np.stack([rr, cc], 1) - gpx) ** 2).sum(axis=1)
+    pick = own[int(np.argmin(d2))]
+    m = own == pick
+    wgt = clear[m] ** 2
+    return (c[m] * wgt[:, None]).sum(axis=0) / wgt.sum()
