@@ -22,7 +22,7 @@ from room_pipeline.navigation.shaft import LumenShaft
 from room_pipeline.navigation.tip_control import aim_command
 from room_pipeline.navigation.lumen import TrueLumen
 from room_pipeline.navigation.perception import back_project, median_scale
-from room_pipeline.navigation.planner import PlannerParams, choose_goal, plan_path
+from room_pipeline.navigation.planner import PlannerParams, choose_goal, free_centre, plan_path
 from room_pipeline.render.camera import CameraIntrinsics
 from room_pipeline.robot.kinematics import ScopeGeometry, fk
 from room_pipeline.robot.sim_params import SimParams
@@ -264,6 +264,21 @@ def test_aim_command_turns_the_view_to_a_world_point_and_holds_the_bend_for_a_fi
     assert q_bent[0] == pytest.approx(q[0]) and abs(q[0]) <= g.q1_max
     with pytest.raises(ConfigError, match="shaft"):
         EpisodeParams(shaft="rope")
+
+
+def test_free_centre_points_back_to_the_lumen_axis_from_an_off_axis_camera():
+    """depth_target free_centre: in a 12 mm tube, the free lumen's centre 10 mm ahead is on the axis seen from
+    an axial camera, and on the axis's side (within 2 mm of it; the free cross-section seen from off-axis
+    weighs its far side more) from a camera 2-2.5 mm off it."""
+    mesh, _ = tube(radius=0.006, straight=0.12)
+    for off in (0.0, 0.002, -0.0025):
+        P = pose_at(0.02)
+        P[0, 3] = off
+        d, cam = render_depth(mesh, P)
+        cl = back_project(d, cam, 1)
+        c = free_centre(cl, PlannerParams(), choose_goal(cl, PlannerParams()).point, 0.01)
+        assert abs(c[2] - 0.01) < 1.5e-3 and abs(c[1]) < 1e-4
+        assert abs(c[0] + off) < (1e-4 if off == 0 else 2e-3) and (off == 0 or np.sign(c[0]) == -np.sign(off))
 
 
 def test_lumen_shaft_follows_the_centreline_and_a_branch_change_keeps_the_base():
