@@ -20,12 +20,16 @@ Episode (one patient, one target branch of the centreline graph)
     at ``physics_step_s``) integrates the control period against the decimated
     lumen (``collision_model.obj``).
 
-Switches (default off; ``tip_control: path`` is the better tracker, see benchmarks/results/navigation.md)
+Switches (default off; none measured better than the default over the benchmark's targets, README)
     ``tip_control: path``: :func:`~room_pipeline.navigation.tip_control.path_command` puts the tip on the
     route / plan / dark ray where it crosses the dome of reachable tips (the look-ahead is then tied to the
     segment's length; ``lookahead_mm`` is only the insertion preview); ``retract_force_n > 0``: retract at
     ``retract_mm_s`` while the last period's peak contact force exceeded it; ``forward_trace``: the shaft's
-    path grows only by the tip's advance along its view (a roll sweep of the bent tip is not shaft motion).
+    path grows only by the tip's advance along its view (a roll sweep of the bent tip is not shaft motion);
+    ``tip_control: aim``: :func:`~room_pipeline.navigation.tip_control.aim_command` turns the view toward the
+    point ``aim_mm`` along the plan / route / ray (the bend set relative to the shaft); ``depth_target:
+    free_centre``: the depth policy's tip target is :func:`~room_pipeline.navigation.planner.free_centre`
+    ``centre_depth_mm`` ahead (a point of the anatomy, not of the view).
     Logged per step: ``route_error_mm`` (tip to the route's centreline), ``trace_lag_mm`` (shaft path length
     minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip minus the arc model's tip).
 
