@@ -264,6 +264,10 @@ def test_aim_command_turns_the_view_to_a_world_point_and_holds_the_bend_for_a_fi
     assert q_bent[0] == pytest.approx(q[0]) and abs(q[0]) <= g.q1_max
     with pytest.raises(ConfigError, match="shaft"):
         EpisodeParams(shaft="rope")
+    with pytest.raises(ConfigError, match="depth_target"):
+        EpisodeParams(depth_target="moon")
+    with pytest.raises(ConfigError, match="single_opening"):
+        PlannerParams(single_opening="both")
 
 
 def test_free_centre_points_back_to_the_lumen_axis_from_an_off_axis_camera():
