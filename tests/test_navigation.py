@@ -18,9 +18,11 @@ from room_pipeline.errors import ConfigError, InputError
 from room_pipeline.io.mesh import Mesh, write_obj
 from room_pipeline.navigation.closed_loop import (EpisodeParams, Patient, check_target, operator_command,
                                                   path_command, reach_command, run_episode, start_pose, Airways, Trace)
+from room_pipeline.navigation.shaft import LumenShaft
+from room_pipeline.navigation.tip_control import aim_command
 from room_pipeline.navigation.lumen import TrueLumen
 from room_pipeline.navigation.perception import back_project, median_scale
-from room_pipeline.navigation.planner import PlannerParams, choose_goal, plan_path
+from room_pipeline.navigation.planner import PlannerParams, choose_goal, free_centre, plan_path
 from room_pipeline.render.camera import CameraIntrinsics
 from room_pipeline.robot.kinematics import ScopeGeometry, fk
 from room_pipeline.robot.sim_params import SimParams
@@ -248,6 +250,58 @@ def test_forward_trace_ignores_a_sideways_sweep_of_the_tip():
     assert np.allclose(tr.route.frame(0.205)[:3, 3], [0.0, 0.01, 0.005])
 
 
+def test_aim_command_turns_the_view_to_a_world_point_and_holds_the_bend_for_a_fixed_one():
+    """tip_control aim: the commanded arc's end tangent points from the tip to the target (in the base frame);
+    the bend depends on the target's direction from the tip, not on the current view (no pursuit)."""
+    g = ScopeGeometry()
+    base = lambda q3: pose_at(q3)                                   # noqa: E731
+    tip = np.array([0.0, 0.0, g.l])
+    target = tip + 0.02 * np.array([math.sin(0.4), 0.0, math.cos(0.4)])
+    q = aim_command(target, tip, base, np.zeros(3), g, 0.0, 0.0, 0.0)
+    view = fk(q, geometry=g)[:3, 2]
+    assert np.degrees(math.acos(np.clip(view @ (target - tip) / 0.02, -1, 1))) < 0.01
+    q_bent = aim_command(target, tip, base, np.array([-0.004, 1.0, 0.0]), g, 0.0, 0.0, 0.0)
+    assert q_bent[0] == pytest.approx(q[0]) and abs(q[0]) <= g.q1_max
+    with pytest.raises(ConfigError, match="shaft"):
+        EpisodeParams(shaft="rope")
+    with pytest.raises(ConfigError, match="depth_target"):
+        EpisodeParams(depth_target="moon")
+    with pytest.raises(ConfigError, match="single_opening"):
+        PlannerParams(single_opening="both")
+
+
+def test_free_centre_points_back_to_the_lumen_axis_from_an_off_axis_camera():
+    """depth_target free_centre: in a 12 mm tube, the free lumen's centre 10 mm ahead is on the axis seen from
+    an axial camera, and on the axis's side (within 2 mm of it; the free cross-section seen from off-axis
+    weighs its far side more) from a camera 2-2.5 mm off it."""
+    mesh, _ = tube(radius=0.006, straight=0.12)
+    for off in (0.0, 0.002, -0.0025):
+        P = pose_at(0.02)
+        P[0, 3] = off
+        d, cam = render_depth(mesh, P)
+        cl = back_project(d, cam, 1)
+        c = free_centre(cl, PlannerParams(), choose_goal(cl, PlannerParams()).point, 0.01)
+        assert abs(c[2] - 0.01) < 1.5e-3 and abs(c[1]) < 1e-4
+        assert abs(c[0] + off) < (1e-4 if off == 0 else 2e-3) and (off == 0 or np.sign(c[0]) == -np.sign(off))
+
+
+def test_lumen_shaft_follows_the_centreline_and_a_branch_change_keeps_the_base():
+    """shaft lumen: the base rides on the (smoothed) centreline root -> the tip's branch; entering a child moves
+    nothing that lies more than the smoothing's reach before the fork (the base is l = 50 mm behind the tip)."""
+    a = Airways(two_branch_graph())
+    sh = LumenShaft(a, pose_at(0.06))
+    # (the smoothing's 'nearest' end shortens the first ~4 sigma = 12 mm of arclength by ~1.2 mm)
+    assert sh.s_end == pytest.approx(0.06, abs=1.5e-3) and sh.branch == 0
+    before = sh.route.frame(0.06)
+    assert np.allclose(before[:3, 3], [0.0, 0.0, 0.06], atol=1.5e-3) and np.allclose(before[:3, 2], [0, 0, 1], atol=1e-6)
+    assert abs(before[0, 3]) < 1e-9 and abs(before[1, 3]) < 1e-9
+    sh.extend(np.array([0.01, 0.0, 0.11]))                  # the tip in the right branch
+    assert sh.branch == 2 and sh.s_end == pytest.approx(0.1 + 0.01 * math.sqrt(2), abs=2e-3)
+    assert np.allclose(sh.route.frame(0.06), before, atol=1e-9)
+    far = sh.route.frame(0.125)[:3, 3]                         # well into the branch: on its centreline
+    assert abs(far[0] - (far[2] - 0.1)) < 1e-4 and far[0] > 0
+
+
 def two_branch_graph():
     root = GraphBranch(0, -1, 0, np.array([[0, 0, z] for z in np.arange(0, 0.101, 0.001)]), np.full(101, 0.008))
     left = GraphBranch(1, 0, 1, np.array([[-x, 0, 0.1 + x] for x in np.arange(0, 0.031, 0.001)]), np.full(31, 0.005))
@@ -305,6 +359,47 @@ def test_cli_demo_refuses_a_folder_without_rendered_frames(tmp_path):
 
 
 # ----------------------------------------------------------------------------- episodes
+
+
+def y_airway(r0=0.006, r1=0.0045, trunk=0.10, child=0.06, angle_deg=35.0, h=0.0007):
+    """A closed Y-shaped lumen (marching cubes of the union of three capsules: trunk along +z, two children
+    +-angle_deg in the x-z plane) and its centreline graph (root 0, children 1 (-x) and 2 (+x)); metres."""
+    from skimage.measure import marching_cubes
+
+    a = math.radians(angle_deg)
+    top = np.array([0.0, 0.0, trunk])
+    ends = [top + child * np.array([s * math.sin(a), 0.0, math.cos(a)]) for s in (-1.0, 1.0)]
+    segs = [(np.array([0.0, 0.0, -0.01]), top, r0)] + [(top, e, r1) for e in ends]
+    lo = np.array([-child * math.sin(a) - 0.01, -0.01, 0.0])
+    hi = np.array([child * math.sin(a) + 0.01, 0.01, trunk + child * math.cos(a) + 0.008])
+    X = np.stack(np.meshgrid(*[np.arange(lo[k], hi[k] + h, h) for k in range(3)], indexing="ij"), axis=-1)
+    sdf = np.full(X.shape[:3], np.inf)
+    for p0, p1, r in segs:
+        d = p1 - p0
+        t = np.clip(((X - p0) @ d) / (d @ d), 0.0, 1.0)
+        sdf = np.minimum(sdf, np.linalg.norm(X - (p0 + t[..., None] * d), axis=-1) - r)
+    sdf[:, :, 0] = np.abs(sdf[:, :, 0]) + h                   # closed at the bottom
+    v, f, _, _ = marching_cubes(np.pad(sdf, 1, constant_values=h).astype(np.float32), 0.0, spacing=(h, h, h))
+    mesh = Mesh(v + lo - h, f[:, ::-1].copy())
+    s = np.arange(0.0, trunk + 1e-9, 1e-3)
+    branches = [GraphBranch(0, -1, 0, np.stack([0 * s, 0 * s, s], 1), np.full(len(s), r0))]
+    for i, e in enumerate(ends):
+        u = np.linspace(0, 1, int(round(child / 1e-3)) + 1)[:, None]
+        branches.append(GraphBranch(i + 1, 0, 1, top + u * (e - top), np.full(len(u), r1)))
+    return mesh, CentrelineGraph(branches)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("policy,target", [("oracle", 1), ("oracle", 2), ("depth", 2)])
+def test_episode_through_a_bifurcation_reaches_the_commanded_child_without_contact_over_half_a_newton(policy, target):
+    """The bifurcation case: a 12 mm trachea forking at +-35 deg into 9 mm children (the scope is 5 mm); the
+    operator's word picks the child; the config's defaults (shaft lumen) reach it with no contact over 0.5 N."""
+    mesh, graph = y_airway()
+    pat = Patient("y", mesh, mesh, graph)
+    res = run_episode(pat, target, EpisodeParams(policy=policy, max_time_s=40.0), PlannerParams(), SimParams())
+    assert res["outcome"] == "reached", res["outcome"]
+    assert res["peak_contact_force_n"] <= 0.5 and res["min_wall_clearance_mm"] > -0.2
+    assert res["generation_reached"] == 1
 
 
 @pytest.mark.slow

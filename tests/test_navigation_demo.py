@@ -55,6 +55,7 @@ def test_report_shows_the_demo_image_and_3d_view(dataset, demo):
     doc = json.loads((demo / "navigation_demo.json").read_text())
     planned = [f for f in doc["frames"] if f.get("path_world_m")]
     assert planned, doc["frames"]
+    assert all(f["status"] == ("free path" if f["collision_free_against_cloud"] else "no free path") for f in planned)
     assert find_demos(dataset) == [demo / "navigation_demo.json"]
     pts = read_ply_points(demo / f"frame_{planned[0]['frame']:04d}_path.ply")
     assert np.allclose(pts[-len(planned[0]["path_world_m"]):], planned[0]["path_world_m"], atol=1e-6)

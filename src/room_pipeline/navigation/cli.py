@@ -92,6 +92,11 @@ def cmd_demo(args) -> int:
             print(f"frame {f['frame']}: {f['reason']}")
             continue
         t = f["true_lumen"]
+        if not f["collision_free_against_cloud"]:
+            print(f"frame {f['frame']}: no free path to the goal at {f['goal_depth_m'] * 1e3:.1f} mm depth (best colliding "
+                  f"path kept in the JSON to inspect: min sphere clearance to the true lumen "
+                  f"{f['true_lumen']['min_sphere_clearance_mm']:.2f} mm)")
+            continue
         print(f"frame {f['frame']}: goal at {f['goal_depth_m'] * 1e3:.1f} mm depth, path {f['length_m'] * 1e3:.1f} mm "
               f"ending {f['end_to_goal_m'] * 1e3:.1f} mm from it, max curvature {f['max_curvature_per_m']:.1f} 1/m, "
               f"free vs cloud {f['collision_free_against_cloud']}, collides with the true lumen "

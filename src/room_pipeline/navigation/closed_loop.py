@@ -20,17 +20,27 @@ Episode (one patient, one target branch of the centreline graph)
     at ``physics_step_s``) integrates the control period against the decimated
     lumen (``collision_model.obj``).
 
-Switches (default off; ``tip_control: path`` is the better tracker, see benchmarks/results/navigation.md)
+Switches (default off; none measured better than the default over the benchmark's targets, README)
     ``tip_control: path``: :func:`~room_pipeline.navigation.tip_control.path_command` puts the tip on the
     route / plan / dark ray where it crosses the dome of reachable tips (the look-ahead is then tied to the
     segment's length; ``lookahead_mm`` is only the insertion preview); ``retract_force_n > 0``: retract at
     ``retract_mm_s`` while the last period's peak contact force exceeded it; ``forward_trace``: the shaft's
-    path grows only by the tip's advance along its view (a roll sweep of the bent tip is not shaft motion).
+    path grows only by the tip's advance along its view (a roll sweep of the bent tip is not shaft motion);
+    ``tip_control: aim``: :func:`~room_pipeline.navigation.tip_control.aim_command` turns the view toward the
+    point ``aim_mm`` along the plan / route / ray (the bend set relative to the shaft); ``depth_target:
+    free_centre``: the depth policy's tip target is :func:`~room_pipeline.navigation.planner.free_centre`
+    ``centre_depth_mm`` ahead (a point of the anatomy, not of the view).
     Logged per step: ``route_error_mm`` (tip to the route's centreline), ``trace_lag_mm`` (shaft path length
     minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip minus the arc model's tip).
 
-Shaft (follow-the-leader)
-    The simulate stage constrains the shaft to the *planned* route; in closed loop there is none, so the
+Shaft
+    ``shaft: lumen`` (default, :class:`LumenShaft`): the bending-segment base slides along the airway's
+    centreline to the tip's branch: the passive insertion tube of a bronchoscope, pushed in, is bent along the
+    lumen by the walls.  Measured: with it the oracle reaches every generation-4 target (benchmarks/results/
+    navigation.md); with ``trace`` the 50 mm bending segment spanned the carina's turn from a base on the
+    tip's swept (roll-zigzagged) path, its middle pressed the wall and the tip was pushed into a neighbour
+    branch (0 %, 20-46 N).  ``shaft: trace`` (follow-the-leader): the simulate stage constrains the shaft to
+    the *planned* route; in closed loop there is none, so the
     bending-segment base slides along the path the tip itself has traced (a rotation-minimising frame
     along it; before the start, a straight line back out of the trachea): a continuum scope's shaft
     follows where its tip went.  Honest limit: the shaft is kinematic, so contact forces act on the
@@ -52,7 +62,10 @@ Outcome
     ``wrong_branch_gap_mm`` nearer that branch's centreline than the route's (siblings' centrelines run within
     a fraction of a mm of each other for several mm past a bifurcation: a tip on the route is not in the
     wrong branch because a sibling's centreline passes nearer);
-    ``stalled`` when the insertion gained < 1 mm over ``stall_time_s``; ``timeout`` at ``max_time_s``.
+    ``stalled`` when the insertion gained < 1 mm over ``stall_time_s``; ``timeout`` at ``max_time_s``;
+    ``tunnelled`` when a contact got deeper than ``simulate.unstable_penetration_mm`` (the soft contact gave way
+    and the scope went through the wall: the physics past that point is not a bronchoscope's, so the episode
+    stops there as a failure instead of reporting tens of N at tens of mm of penetration).
     Reported: time (s), tip path length (mm), physics steps in contact, peak summed normal contact force
     (N, every physics step), minimum distance from the scope's backbone to the TRUE lumen surface minus
     the scope radius (mm, every control step), the deepest generation of the route reached, and CPU time
@@ -83,8 +96,9 @@ from ..robot.sim_params import SimParams
 from .airways import COMMANDS, Airways, Patient, check_target, generation_targets, operator_command, start_pose  # noqa: F401
 from .lumen import TrueLumen
 from .perception import back_project
-from .planner import PlannerParams, choose_goal, plan_path
-from .tip_control import _model_error, path_command, reach_command  # noqa: F401
+from .planner import PlannerParams, choose_goal, free_centre, plan_path
+from .shaft import LumenShaft, Trace  # noqa: F401
+from .tip_control import _model_error, aim_command, path_command, reach_command  # noqa: F401
 
 MM = 1e-3
 POLICIES = ("depth", "darkest", "oracle")
@@ -112,17 +126,24 @@ class EpisodeParams:
                                         # here: 10 ms tunnelled at a carina (57 N), 5 ms did not
     slow_factor: float = 0.5            # insertion speed factor while the plan is not collision-free
     dark_quantile: float = 0.05         # darkest: pixels at or below this luminance quantile form the dark regions
-    tip_control: str = "point"          # point: bend toward the look-ahead point; path: put the tip on the path
+    tip_control: str = "point"          # point: bend toward the look-ahead point; path: put the tip on the path;
+                                        # aim: turn the view toward the point aim_mm along the plan / route / ray
+    depth_target: str = "plan"          # depth policy's tip target: plan (lookahead_mm along the plan) | free_centre
+                                        # (centre of the free lumen centre_depth_mm ahead, in the goal's opening)
+    centre_depth_mm: float = 10.0
+    aim_mm: float = 20.0                # aim: how far along the plan / route / dark ray the view is turned to
     retract_force_n: float = 0.0        # > 0: retract while the last period's peak contact force exceeded this (N)
     retract_mm_s: float = 2.0           # ... at this speed
     forward_trace: bool = False         # the shaft's path grows by the tip's advance along its view only
+    shaft: str = "lumen"                # lumen: the bending segment's base follows the airway's centreline (a passive
+                                        # shaft conforming to the lumen); trace: the tip's own swept path
     seed: int = 0                       # actuation delay draw (and the planner's samples: planner.seed + step)
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
             raise ConfigError(f"navigate.episode.policy must be one of {POLICIES}, got {self.policy!r}")
         for name in ("control_rate_hz", "max_time_s", "speed_mm_s", "fov_deg", "lookahead_mm", "start_offset_mm",
-                     "wrong_branch_mm", "stall_time_s", "physics_step_s", "retract_mm_s"):
+                     "wrong_branch_mm", "stall_time_s", "physics_step_s", "retract_mm_s", "aim_mm", "centre_depth_mm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"navigate.episode.{name} must be > 0, got {v!r}")
@@ -130,8 +151,12 @@ class EpisodeParams:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"navigate.episode.{name} must be >= 0, got {v!r}")
-        if self.tip_control not in ("point", "path"):
-            raise ConfigError(f"navigate.episode.tip_control must be point or path, got {self.tip_control!r}")
+        if self.tip_control not in ("point", "path", "aim"):
+            raise ConfigError(f"navigate.episode.tip_control must be point, path or aim, got {self.tip_control!r}")
+        if self.depth_target not in ("plan", "free_centre"):
+            raise ConfigError(f"navigate.episode.depth_target must be plan or free_centre, got {self.depth_target!r}")
+        if self.shaft not in ("trace", "lumen"):
+            raise ConfigError(f"navigate.episode.shaft must be trace or lumen, got {self.shaft!r}")
         if self.image_px < 8:
             raise ConfigError("navigate.episode.image_px must be >= 8")
         if not 0 < self.reach_fraction <= 1 or not 0 < self.dark_quantile < 1:
@@ -140,57 +165,6 @@ class EpisodeParams:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "EpisodeParams":
         return params_from_dict(cls, d, "navigate.episode")
-
-
-# --------------------------------------------------------------------------- the shaft's path
-
-
-class Trace:
-    """Follow-the-leader path of the shaft: points every >= 1 mm with a rotation-minimising frame."""
-
-    def __init__(self, pose: np.ndarray, back_m: float = 0.2, step: float = 1e-3) -> None:
-        z = pose[:3, 2]
-        x = pose[:3, 0]
-        n = int(round(back_m / step))
-        self.P = [pose[:3, 3] - (n - k) * step * z for k in range(n + 1)]
-        self.X = [x.copy() for _ in range(n + 1)]
-        self.step = step
-        self.s_end = n * step
-        self.S = [k * step for k in range(n + 1)]
-        self._route: Route | None = None
-
-    def extend(self, p: np.ndarray, z: np.ndarray | None = None) -> None:
-        """Append the tip position ``p`` (m) once it is >= ``step`` past the last point.
-
-        With the tip's view direction ``z``, only the advance along it counts (for the test and as the arc
-        length added): a bent tip swept sideways by a roll moves the tip, not the shaft, so the shaft's arc
-        length stays in step with the insertion instead of running ahead of it by the sweep.
-        """
-        d = np.linalg.norm(p - self.P[-1])
-        ds = d if z is None else float((p - self.P[-1]) @ z)
-        if ds < self.step:
-            return
-        t = (p - self.P[-1]) / d
-        x = self.X[-1] - (self.X[-1] @ t) * t
-        nx = np.linalg.norm(x)
-        if nx < 1e-6:
-            return
-        self.P.append(p.copy())
-        self.X.append(x / nx)
-        self.S.append(self.S[-1] + ds)
-        self.s_end += ds
-        self._route = None
-
-    @property
-    def route(self) -> Route:
-        if self._route is None:
-            P = np.array(self.P)
-            X = np.array(self.X)
-            s = np.array(self.S)
-            R = np.zeros((len(P), 3, 3))
-            R[:, :, 0] = X
-            self._route = Route(P, s, R)
-        return self._route
 
 
 # --------------------------------------------------------------------------- the episode
@@ -252,7 +226,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
     eyes = _Eyes(patient.mesh, cam, rgb=params.policy == "darkest" or depth_source is not None)
 
     pose0 = start_pose(patient.graph, params.start_offset_mm * MM)
-    trace = Trace(pose0)
+    trace = Trace(pose0) if params.shaft == "trace" else LumenShaft(airways, pose0)
     sim = ScopeSim(sim_params, geometry)
     try:
         sim.set_wall(patient.collision.vertices, patient.collision.faces)
@@ -290,6 +264,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
         outcome = "timeout"
         tip_prev = None
         f_period = 0.0
+        tunnelled = False
         path_len = 0.0
         frames = []
         k = 0
@@ -323,7 +298,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                     break
             word = operator_command(airways, target, branch, tip, cam)
             c0 = time.process_time()
-            path = None
+            path = aim = None
             defl = _model_error(act(t), trace.route.frame, geometry, p_tip)
             info: dict[str, Any] = {"t": round(t, 6), "branch": branch, "command": word,
                                     "route_error_mm": round(d_route * 1e3, 3),
@@ -335,6 +310,8 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 j = int(min(len(route_s) - 2, np.searchsorted(route_s, s_goal)))
                 tgt = route_P[j]
                 tan = route_P[j + 1] - route_P[j]
+                ja = int(min(len(route_s) - 1, np.searchsorted(route_s, route_s[i] + params.aim_mm * MM)))
+                aim = route_P[ja]
                 ahead = route_P[i:]
                 path = ahead[route_s[i:] - route_s[i] <= 2 * geometry.l]
                 c1 = time.process_time()
@@ -350,7 +327,11 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 else:
                     pl = plan_path(cloud, goal.point, dataclasses.replace(planner, seed=planner.seed + k), tree)
                     pc, tc = pl.at(params.lookahead_mm * MM)
+                    if params.depth_target == "free_centre":
+                        fc = free_centre(cloud, planner, goal.point, params.centre_depth_mm * MM, tree)
+                        pc = pc if fc is None else fc
                     tgt = tip[:3, :3] @ pc + p_tip
+                    aim = tip[:3, :3] @ pl.at(min(params.aim_mm * MM, pl.length))[0] + p_tip
                     tan = tip[:3, :3] @ tc
                     path = pl.to_world(tip)[0]
                     info["plan"] = {"free": pl.collision_free, "length_mm": round(pl.length * 1e3, 3),
@@ -363,6 +344,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 ray = _darkest_ray(lum, cam, params.dark_quantile, COMMANDS.get(word) if word else None)
                 tan = tip[:3, :3] @ ray
                 tgt = p_tip + params.lookahead_mm * MM * tan
+                aim = p_tip + params.aim_mm * MM * tan
                 path = p_tip + np.arange(0.0, 2 * geometry.l, 1e-3)[:, None] * tan
             tan = tan / np.linalg.norm(tan)
             q_prev = signal(t)
@@ -371,7 +353,11 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                                               (info.get("plan") or {}).get("free", True) else params.slow_factor)
             if params.retract_force_n > 0 and f_period > params.retract_force_n:
                 speed = -params.retract_mm_s * MM        # an operator backs off a pressing wall, then steers again
-            if params.tip_control == "path" and path is not None and len(path):
+            if params.tip_control == "aim" and aim is not None:
+                q_new = aim_command(aim, p_tip, trace.route.frame, q_prev, geometry, speed * ctrl_dt,
+                                    sim_params.roll_hold_q1_fraction, sim_params.roll_free_q1_fraction,
+                                    preview_m=params.lookahead_mm * MM)
+            elif params.tip_control == "path" and path is not None and len(path):
                 q_new, resid = path_command(path, trace.route.frame, q_prev, geometry, speed * ctrl_dt,
                                             sim_params.roll_hold_q1_fraction, sim_params.roll_free_q1_fraction,
                                             preview_m=params.lookahead_mm * MM)
@@ -389,8 +375,10 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 tj = t + (j + 1) * h
                 apply(act(tj), h, reset=(j == 0))
                 sim.step(1)
-                f, _ = sim.contacts()
+                f, pen = sim.contacts()
                 peak_force = max(peak_force, f)
+                if pen > sim_params.unstable_penetration_mm * MM:
+                    tunnelled = True
                 f_period = max(f_period, f)
                 contact_steps += int(f > 0)
                 steps += 1
@@ -406,6 +394,9 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             t += ctrl_dt
             k += 1
             q3_hist.append((t, q[2]))
+            if tunnelled:              # the soft contact gave way (the scope through the wall): stop, a failure
+                outcome = "tunnelled"
+                break
         n = max(1, len(log))
         result = {
             "patient": patient.name, "target": int(target), "target_generation": patient.graph.branch(target).generation,

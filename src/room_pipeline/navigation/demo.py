@@ -182,6 +182,8 @@ def run_demo(seq_dir: Path, frames: list[int], out_dir: Path, params: PlannerPar
             "min_clearance_to_cloud_m": float(pl.clearance.min()),
             "end_to_goal_m": float(np.linalg.norm(pl.points[-1] - goal.point)),
             "collision_free_against_cloud": pl.collision_free,
+            # the planner's answer: a collision-free path, or none (the best colliding one is kept to inspect)
+            "status": "free path" if pl.collision_free else "no free path",
             "true_lumen": r["true_lumen"],
         })
         results.append(entry)

@@ -68,6 +68,10 @@ class PlannerParams:
     opening_size: float = 0.2             # openings: local-maximum window, fraction of the image width
     deep_fraction: float = 0.8            # the goal is among an opening's free points this deep (of its deepest)
     min_region_px: int = 3                # openings owning fewer free candidates (sub-sampled pixels) are ignored
+    w_centre: float = 0.0                 # weight of the centring term (0: off)
+    centre_mm: float = 2.0                # ... which charges path points nearer the cloud than radius + margin + this
+    single_opening: str = "side"          # with a command and one opening: side = its deep point farthest the
+                                          # commanded way; centre = its deepest spot (the command only picks openings)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -84,6 +88,10 @@ class PlannerParams:
             raise ConfigError("navigate.planner.far_fraction must be in (0, 1]")
         if self.min_length_mm > self.max_length_mm:
             raise ConfigError("navigate.planner.min_length_mm must be <= max_length_mm")
+        if self.single_opening not in ("side", "centre"):
+            raise ConfigError(f"navigate.planner.single_opening must be side or centre, got {self.single_opening!r}")
+        if self.w_centre < 0 or self.centre_mm < 0:
+            raise ConfigError("navigate.planner.w_centre and centre_mm must be >= 0")
         if self.margin_mm < 0 or self.unobserved_mm < 0:
             raise ConfigError("navigate.planner.margin_mm and unobserved_mm must be >= 0")
 
@@ -209,7 +217,7 @@ def choose_goal(cloud: LocalCloud, params: PlannerParams, command: np.ndarray | 
     # with a command and a single opening (the next bifurcation not resolved yet), its deep free point lying
     # farthest the commanded way, so the tip is already on that side when the two openings part
     deep = inside[z[inside] >= params.deep_fraction * z[inside].max()]
-    if command is not None and len(regions) == 1:
+    if command is not None and len(regions) == 1 and params.single_opening == "side":
         j = deep[int(np.argmax(idx[deep][:, ::-1] @ np.asarray(command, float)))]
     else:
         j = deep[np.argmin(((idx[deep] - cents[pick]) ** 2).sum(axis=1))]
@@ -300,12 +308,17 @@ def plan_path(cloud: LocalCloud, goal: np.ndarray, params: PlannerParams,
         cut = np.argmax(-dg, axis=1)                          # closest point to the goal: the path ends there
         M = P.shape[1]
         keep = np.arange(M)[None, :] <= cut[:, None]
-        _, into, behind = _violations(P, tree, cloud, r_opt, unobs)
+        dist, into, behind = _violations(P, tree, cloud, r_opt, unobs)
         v = np.where(keep, into + behind, 0.0)
         cnt = keep.sum(axis=1)
+        if params.w_centre > 0:      # centring: mean shortfall of the clearance below radius + margin + centre_mm
+            v_c = np.where(keep & (P[:, :, 2] >= unobs), np.maximum(0.0, r_opt + params.centre_mm * MM - dist), 0.0)
+            centre = params.w_centre * v_c.sum(axis=1) / cnt
+        else:
+            centre = 0.0
         bend = (np.linalg.norm(K, axis=2) ** 2).mean(axis=1) / kmax ** 2
         cost = dg[np.arange(len(K)), cut] + params.w_collision * (v.max(axis=1) + v.sum(axis=1) / cnt) \
-            + params.w_bending * s[cut] * bend
+            + params.w_bending * s[cut] * bend + centre
         return cost, P, T, s, cut
 
     for _ in range(params.iterations):
@@ -333,3 +346,39 @@ def _clip(K: np.ndarray, kmax: float) -> np.ndarray:
     """Curvature vectors scaled down to |k| <= kmax (last axis)."""
     n = np.linalg.norm(K, axis=-1, keepdims=True)
     return K * np.minimum(1.0, kmax / np.maximum(n, 1e-12))
+
+
+def free_centre(cloud: LocalCloud, params: PlannerParams, goal: np.ndarray, depth_m: float,
+                tree: cKDTree | None = None, band_m: float = 1.5e-3) -> np.ndarray | None:
+    """The centre of the free lumen ``depth_m`` ahead (camera frame, m), on the way to ``goal``; None if none.
+
+    The free candidates of :func:`choose_goal` (depth samples pulled back along their rays, clearance to the
+    cloud >= scope radius + margin) within ``band_m`` of the planar depth ``depth_m`` form the free cross-
+    section(s) of the lumen there; the one (8-connected in the image) reaching nearest to the goal's pixel is
+    the lumen the goal lies in, and its clearance^2-weighted mean point is its centre (the most central free
+    points weigh most).  A tip steered to it stays mid-lumen and takes the goal's opening at a bifurcation;
+    being a point of the anatomy (not of the view), it does not move as the view turns.
+    """
+    if len(cloud.points) == 0:
+        return None
+    tree = tree or cKDTree(cloud.points)
+    need = (params.scope_radius_mm + params.margin_mm) * MM
+    c, clear, idx = _candidates(cloud, tree, need)
+    sel = (clear >= need * 0.999) & (np.abs(c[:, 2] - depth_m) <= band_m)
+    if not sel.any():
+        return None
+    c, clear, idx = c[sel], clear[sel], idx[sel]
+    h, w = cloud.depth.shape
+    mask = np.zeros((h, w), bool)
+    rr, cc = np.clip(idx[:, 0], 0, h - 1), np.clip(idx[:, 1], 0, w - 1)
+    mask[rr, cc] = True
+    lab, n = ndimage.label(ndimage.binary_dilation(mask, iterations=1), structure=np.ones((3, 3)))
+    own = lab[rr, cc]
+    g = np.asarray(goal, float)
+    u, v = cloud.camera.project_normalized(g[0] / max(g[2], 1e-9), g[1] / max(g[2], 1e-9))
+    gpx = np.array([v / cloud.stride, u / cloud.stride])
+    d2 = ((np.stack([rr, cc], 1) - gpx) ** 2).sum(axis=1)
+    pick = own[int(np.argmin(d2))]
+    m = own == pick
+    wgt = clear[m] ** 2
+    return (c[m] * wgt[:, None]).sum(axis=0) / wgt.sum()

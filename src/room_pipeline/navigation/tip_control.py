@@ -87,6 +87,36 @@ def path_command(path_world: np.ndarray, base_frame, q_prev: np.ndarray, geometr
     return q, float(math.sqrt(res[i]))
 
 
+def aim_command(target_world: np.ndarray, tip_world: np.ndarray, base_frame, q_prev: np.ndarray,
+                geometry: ScopeGeometry, advance_m: float, hold_fraction: float = 0.05, free_fraction: float = 0.15,
+                preview_m: float = 0.0) -> np.ndarray:
+    """Joint command inserting ``advance_m`` more and turning the tip's VIEW toward ``target_world`` (m).
+
+    The direction ``d`` from the tip ``tip_world`` to the target, in the bending-segment base frame at the
+    insertion ``max(advance_m, preview_m)`` further (``base_frame``, as :func:`reach_command`), is the end
+    tangent the constant-curvature arc must have: ``theta = acos(d_z)`` (clipped to ``theta_max``),
+    ``q2 = atan2(d_x, -d_y)``.  The bend is set relative to the shaft, not to the current view, so a target
+    fixed in the world is a fixed bend (no pursuit of a point that moves with the view: a look-ahead point
+    taken along the current view grows the bend every step); as the tip moves toward the target's side, the
+    bend needed shrinks.  Roll held near zero bending as in :func:`reach_command`.
+    """
+    B = base_frame(float(q_prev[2]) + max(advance_m, preview_m))
+    d = B[:3, :3].T @ (np.asarray(target_world, float) - np.asarray(tip_world, float))
+    n = float(np.linalg.norm(d))
+    q3 = float(q_prev[2]) + advance_m
+    if n < 1e-9:
+        return np.array([float(q_prev[0]), float(q_prev[1]), q3])
+    d = d / n
+    theta = min(math.acos(max(-1.0, min(1.0, float(d[2])))), geometry.theta_max)
+    r = math.hypot(float(d[0]), float(d[1]))
+    q2 = float(q_prev[1]) + _wrap(math.atan2(d[0], -d[1]) - float(q_prev[1])) if r > 1e-9 else float(q_prev[1])
+    q = np.array([-2.0 * geometry.gamma * theta, q2, q3])
+    q[0] = max(-geometry.q1_max, min(geometry.q1_max, q[0]))
+    if hold_fraction > 0 or free_fraction > 0:
+        q = regularise_roll(q, float(q_prev[1]), geometry.q1_max, hold_fraction, free_fraction, project=False)
+    return q
+
+
 def _model_error(q: np.ndarray, base_frame, geometry: ScopeGeometry, p_tip: np.ndarray) -> np.ndarray:
     """Simulated tip ``p_tip`` minus the constant-curvature tip of the actuated ``q`` on the shaft's path
     (world, m: how far the walls have pushed the bending segment off its commanded shape)."""
