@@ -32,7 +32,8 @@ Per frame
        on of the tip light / of the bounced light.  **Default (``caustics`` off): both are the albedo**, a
        pure Lambertian wall.  That is the light Cycles computes as this project runs it: render/blender.py
        turns ``caustics_reflective`` off, and Cycles then drops the Principled BSDF's specular layer (and
-       with it the layer's ``1 - A`` weight on the diffuse base) at every surface a diffuse bounce reaches,
+       with it the layer's ``1 - A`` weight on the diffuse base: inferred from the measurements, not read in
+       Blender's source) at every surface a diffuse bounce reaches,
        so only the first surface of a camera path (or one reached by glossy bounces only) is wet.  Measured
        with ``glossy_bounces = 0`` in Cycles: its glossy bounces carry 2 % of the light of a trachea view, the
        wet transport below 15 % (benchmarks/results/realism_psnr_split_trachea_glossy_off_s10.md); the wet
