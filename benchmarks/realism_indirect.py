@@ -291,7 +291,7 @@ def tiles(scene, views, names, normals, args) -> None:
     for n in names:
         i = views[n]
         sc = one_view(scene, i)
-        cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64)
+        cfg = IndirectConfig(bounces=args.ref_bounces, rays_per_point=64, caustics=rp.indirect_caustics)
         lin_v, cpu_v, build_v = raycast_linear(sc, False, cfg, args.threads)
         lin_p, cpu_p, build_p = raycast_linear(sc, True, cfg, args.threads, stride=rp.shading_stride,
                                                transport_albedo=args.transport_albedo,
@@ -396,7 +396,9 @@ def speed(scene, views, names, args) -> None:
         i = views[n]
         sc = one_view(scene, i, 0.0)
         for nb, k in grid:
-            cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k))
+            rp = render_params_default({k_: json.loads(v) for k_, v in (x.split("=", 1) for x in args.set)})
+            cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k,
+                                                                               caustics=rp.indirect_caustics))
             rc = RaycastRenderer(sc, cfg)
             b0 = time.process_time()
             if nb:
@@ -413,8 +415,8 @@ def speed(scene, views, names, args) -> None:
                 cpu.append(time.process_time() - c0)
                 wall.append(time.perf_counter() - w0)
             m0 = time.process_time()
-            raw_exposures(sc, exposure_params(render_params_default()), args.threads,
-                          IndirectConfig(bounces=nb, rays_per_point=k) if nb else None)
+            raw_exposures(sc, exposure_params(rp), args.threads,
+                          IndirectConfig(bounces=nb, rays_per_point=k, caustics=rp.indirect_caustics) if nb else None)
             meter = time.process_time() - m0
             rows.append({"view": n, "bounces": nb, "rays_per_point": k, "cpu_s": float(np.median(cpu)),
                          "wall_s": float(np.median(wall)), "indirect_wall_s": float(rc.timings["indirect"]),

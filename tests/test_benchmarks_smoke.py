@@ -82,6 +82,8 @@ NO_SMOKE = {
     "_synthetic.py": "a helper module, not a benchmark",
     "_throughput_parallel.py": "a helper module (the processes of write_throughput.py), not a benchmark",
     "realism_indirect.py": "renders Cycles references (bpy) at hundreds of samples; no size option below minutes",
+    "realism_psnr_split.py": "renders Cycles references (bpy) of 16 tiles at 1024 and 256 spp per view; no size option "
+                             "below minutes",
     "collision_speed.py": "simulates a real mask's route on several collision surfaces; minutes of PyBullet, no size option",
     "anatomy_memory.py": "runs the anatomy chain on a real mask up to a stage; no smaller input option",
     "real_tree_robustness.py": "the anatomy chain on perturbed real masks: minutes per case even for one",

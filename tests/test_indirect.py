@@ -179,6 +179,37 @@ def test_render_config_reaches_the_ray_caster_and_the_meter():
     p = RenderParams.from_dict({"indirect_bounces": 3, "indirect_rays_per_point": 9, "indirect_seed": 4})
     assert indirect_config(p) == IndirectConfig(bounces=3, rays_per_point=9, seed=4)
     assert raycast_config(p).indirect.bounces == 3
+    assert not indirect_config(p).caustics
+    assert indirect_config(RenderParams.from_dict({"indirect_caustics": True})).caustics
+
+
+def test_walls_reached_by_bounced_light_pass_it_on_as_lambertian_walls_without_caustics():
+    """Without caustics (the default, as Cycles renders with caustics_reflective off) the light a wall passes
+    on is its albedo times what it receives, wet layer or not: the transport of a wet sphere is the dry
+    sphere's.  With caustics the wet layer takes its share (white) and the old transport is kept.  The mirror
+    ray of a pixel sees a wet wall either way (the same outgoing radiance in both modes)."""
+    mesh = sphere()
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    pose = look_at(np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    light = TipLight(power_w=0.01, offset_m=(0.0, 0.0, 0.0))
+    base = (0.6, 0.4, 0.3)
+    out = {}
+    for name, spec, caustics in (("dry", 0.0, False), ("wet", 0.5, False), ("wet_caustics", 0.5, True)):
+        r = Radiosity(rc, mesh.vertices, mesh.faces, np.zeros(3), TissueMaterial(base_color=base, specular=spec),
+                      None, IndirectConfig(bounces=4, rays_per_point=16, caustics=caustics), 1)
+        out[name] = (r, r.frame(pose, light))
+    np.testing.assert_allclose(out["wet"][1][1], out["dry"][1][1], rtol=1e-5)            # same indirect light
+    np.testing.assert_allclose(out["wet"][0].rho_bounce, np.broadcast_to(base, (mesh.n_vertices, 3)), rtol=1e-6)
+    wet_c = out["wet_caustics"][0]
+    np.testing.assert_array_equal(wet_c.rho_bounce, wet_c.rho)
+    # the wet layer's white share lifts the low-albedo channel most
+    ratio = out["wet_caustics"][1][1].mean(axis=0) / out["wet"][1][1].mean(axis=0)
+    assert ratio[2] > ratio[0]
+    # what a mirror ray sees: the wet wall's direct light (1 bounce fewer), the same in both modes at 1 bounce
+    one = [Radiosity(rc, mesh.vertices, mesh.faces, np.zeros(3), TissueMaterial(base_color=base, specular=0.5), None,
+                     IndirectConfig(bounces=1, rays_per_point=16, caustics=c), 1).frame(pose, light)[2] for c in (0, 1)]
+    np.testing.assert_allclose(one[0], one[1], rtol=1e-6)
 
 
 def test_agrees_with_cycles_path_tracing_in_a_closed_sphere():

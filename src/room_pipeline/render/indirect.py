@@ -27,23 +27,30 @@ Per frame
        ``cos^mu`` profile about the optical axis and the falloff option (:func:`shading.light_profile`),
        with a shadow ray from the point to the light (``shadows``; the light sits next to the lens, so
        every wall the camera sees is lit, but walls round a bend are not).
-    2. ``bounces`` Jacobi steps of ``E <- E_dir + G (rho E)`` per colour channel, the first reflection of
-       the tip light at its own incidence: ``E_1 = G (rho_dir E_dir)``, ``E_{n+1} = G (rho_dir E_dir + rho
-       E_n)``.  ``rho`` is what a wall re-emits of the bounced light, which arrives from the whole hemisphere:
-       ``albedo (1 - Abar) + Abar`` with ``Abar = 2 int A(mu) mu dmu`` the wet layer's mean directional
-       albedo (:func:`shading.specular_albedo`; the Principled BSDF scales the diffuse base by ``1 - A``);
-       ``rho_dir`` is the same for the tip light's single direction, ``albedo (1 - A(n.l)) + A(n.l)``.
-       Using ``rho`` for the direct light too (as before) made a closed sphere 2.8-3.8 % brighter than
-       Cycles after 1 bounce and 5.8-6.4 % after 8: the walls facing the light see it near normal
-       incidence, where the wet layer reflects far less than its hemispherical mean; with ``rho_dir`` the
-       gap is within 1 % (tests/test_indirect.py).  After ``n`` steps ``E`` holds paths of up to ``n``
+    2. ``bounces`` Jacobi steps of ``E <- E_dir + G (rho E)`` per colour channel: ``E_1 = G (rho_dir
+       E_dir)``, ``E_{n+1} = G (rho_dir E_dir + rho E_n)``, where ``rho_dir`` / ``rho`` are what a wall passes
+       on of the tip light / of the bounced light.  **Default (``caustics`` off): both are the albedo**, a
+       pure Lambertian wall.  That is the light Cycles computes as this project runs it: render/blender.py
+       turns ``caustics_reflective`` off, and Cycles then drops the Principled BSDF's specular layer (and
+       with it the layer's ``1 - A`` weight on the diffuse base: inferred from the measurements, not read in
+       Blender's source) at every surface a diffuse bounce reaches,
+       so only the first surface of a camera path (or one reached by glossy bounces only) is wet.  Measured
+       with ``glossy_bounces = 0`` in Cycles: its glossy bounces carry 2 % of the light of a trachea view, the
+       wet transport below 15 % (benchmarks/results/realism_psnr_split_trachea_glossy_off_s10.md); the wet
+       transport made the far walls of the trachea 19 % too bright.  With ``caustics`` the walls keep the
+       layer: ``rho = albedo (1 - Abar) + Abar`` with ``Abar = 2 int A(mu) mu dmu`` the wet layer's mean
+       directional albedo (:func:`shading.specular_albedo`; the Principled BSDF scales the diffuse base by
+       ``1 - A``); ``rho_dir`` is the same for the tip light's single direction, ``albedo (1 - A(n.l)) +
+       A(n.l)`` (its specular share re-emitted as if diffuse).  The mirror ray of a pixel (``glossy``) sees
+       a wall reached by a glossy bounce, which is wet either way: ``(rho_dir E_dir + rho E_ind) / pi`` with
+       the layered values (:meth:`Radiosity.frame`).  After ``n`` steps ``E`` holds paths of up to ``n``
        bounces, as Cycles' ``max_bounces = n`` does; the indirect part is ``E - E_dir``.
     3. At each pixel, the indirect irradiance interpolated with the hit's barycentrics, times
        ``(1 - F0) albedo(x) / pi`` (the pixel's own albedo: the per-pixel appearance) is added to the
        direct radiance.
 
-What it leaves out: glossy inter-reflection (the wet specular lobe's share of the bounced light, a few
-per cent), the irradiance's variation inside a triangle beyond linear interpolation, and the texture's
+What it leaves out: the glossy lobe's direction (its share is re-emitted as if diffuse where it is kept),
+the irradiance's variation inside a triangle beyond linear interpolation, and the texture's
 detail finer than the vertices in the light it re-emits.  Units: irradiance W/m^2, radiance W/(m^2 sr),
 lengths metres.
 """
@@ -67,7 +74,11 @@ class IndirectConfig:
     rays_per_point: gather rays per mesh vertex (K); seed: their sampling seed;
     shadows: shadow rays for the direct light at the points; eps_m: ray start offset off the surface;
     glossy: the wet layer's specular reflection of the bounced light (module docstring), seen at the pixels
-    by one mirror ray every ``glossy_stride`` pixels.
+    by one mirror ray every ``glossy_stride`` pixels;
+    caustics: whether walls reached by bounced light keep their wet layer (its specular share ``A``, white,
+    and the ``1 - A`` layering of the diffuse base) in the light they pass on (step 2 of the module
+    docstring); False (the default): they pass on ``albedo`` E, pure Lambertian, as Cycles renders with
+    ``caustics_reflective`` off (render/blender.py sets it off for every Cycles render, the references too).
     """
 
     bounces: int = 0
@@ -77,6 +88,7 @@ class IndirectConfig:
     eps_m: float = 1e-5
     glossy: bool = True
     glossy_stride: int = 2
+    caustics: bool = False
 
     def __post_init__(self) -> None:
         if self.bounces < 0 or self.rays_per_point < 1 or not self.eps_m > 0 or self.glossy_stride < 1:
@@ -179,6 +191,9 @@ class Radiosity:
         #: the diffuse base's hemispherical weight under the layering, 1 - 2 int A(mu) mu dmu
         self.diffuse_weight = 1.0 - spec_hemi
         self.rho = (alb * self.diffuse_weight + self.spec_mean).astype(np.float32)
+        #: what a wall passes on to the others of the light it receives (module docstring, step 2): the
+        #: layered ``rho`` with ``caustics``, else its albedo (Cycles without reflective caustics)
+        self.rho_bounce = self.rho if config.caustics else alb.astype(np.float32)
         self._mu = mu
         self._alb = alb.astype(np.float32)
         t0 = time.process_time()
@@ -233,6 +248,11 @@ class Radiosity:
         return g.astype(np.float32)
 
     # ------------------------------------------------------------------ per frame
+    def bounce_albedo(self, cos_light: np.ndarray) -> np.ndarray:
+        """(V, 3) float32 share of the tip light a vertex passes on to the other walls: :meth:`direct_albedo`
+        with ``caustics``, else the albedo (module docstring, step 2)."""
+        return self.direct_albedo(cos_light) if self.config.caustics else self._alb
+
     def direct_irradiance(self, pose: np.ndarray, light: TipLight) -> np.ndarray:
         """(V,) float32 irradiance (W/m^2) from the tip light at every vertex, camera-to-world ``pose``."""
         return self.direct(pose, light)[0]
@@ -285,10 +305,11 @@ class Radiosity:
         """Indirect irradiance after ``bounces`` and after ``bounces - 1`` steps, and the re-emitted direct light."""
         n = self.config.bounces if bounces is None else int(bounces)
         ed = np.asarray(e_direct, dtype=np.float32)[:, None]
-        first = (self.rho if cos_light is None else self.direct_albedo(cos_light)) * ed   # (V, 3) re-emitted
+        first = (self.rho if cos_light is None else self.direct_albedo(cos_light)) * ed   # (V, 3) as a mirror sees it
+        src = (self.rho_bounce if cos_light is None else self.bounce_albedo(cos_light)) * ed   # passed on to walls
         e_ind = prev = np.zeros((len(ed), 3), dtype=np.float32)
         for _ in range(n):
-            prev, e_ind = e_ind, np.asarray(self.G @ (first + self.rho * e_ind), dtype=np.float32)
+            prev, e_ind = e_ind, np.asarray(self.G @ (src + self.rho_bounce * e_ind), dtype=np.float32)
         return e_ind, prev, first
 
     def vertex_irradiance(self, pose: np.ndarray, light: TipLight) -> tuple[np.ndarray, np.ndarray]:

@@ -45,6 +45,7 @@ class RenderParams:
     indirect_rays_per_point: int = 64
     indirect_seed: int = 0
     indirect_shadows: bool = True
+    indirect_caustics: bool = False
     direct_shadows: bool = False
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
@@ -154,7 +155,7 @@ def indirect_config(p: "RenderParams"):
     from .indirect import IndirectConfig
 
     return IndirectConfig(bounces=p.indirect_bounces, rays_per_point=p.indirect_rays_per_point,
-                          seed=p.indirect_seed, shadows=p.indirect_shadows)
+                          seed=p.indirect_seed, shadows=p.indirect_shadows, caustics=p.indirect_caustics)
 
 
 def raycast_config(p: "RenderParams", nthreads: int = 0):
