@@ -161,3 +161,36 @@ def test_navigate_section_is_perception_plus_its_subsections():
     for key, bad in (("noise", "1"), ("depth", 3), ("noise", -1.0)):
         with pytest.raises(ConfigError, match=rf"navigate\.{key}"):
             NavPerception.from_navigate({key: bad})
+
+
+def _old_segment_params(d: dict) -> SegmentParams:
+    """The hand-rolled reader SegmentParams.from_dict had until session 10 (its conversions, then validate)."""
+    names = {f.name: f for f in dataclasses.fields(SegmentParams)}
+    kw = {}
+    for k, v in d.items():
+        default = names[k].default
+        if v is None:
+            kw[k] = None
+        elif isinstance(default, bool):
+            kw[k] = v
+        elif isinstance(default, int):
+            kw[k] = int(v)
+        elif isinstance(default, float) or k in ("refine_hu", "thin_airway_hu"):
+            kw[k] = float(v)
+        else:
+            kw[k] = str(v)
+    return SegmentParams(**kw)
+
+
+@pytest.mark.parametrize("overrides", [[], ["patients=shared_masks"], ["patients=phantom_cohort"],
+                                       ["segment=totalsegmentator"], ["trajectory.stop_at_wall=false"],
+                                       ["patients=shared_masks", "render.max_frames=30"]])
+def test_every_composed_config_reads_to_the_same_params_as_before(overrides):
+    """The pipeline's compositions (the default, the shared real masks, the cohort, TotalSegmentator) give the
+    same SegmentParams and TrajectoryParams (and trajectory.json bytes) through params_from_dict as through the
+    readers they replace, so every mask's segment and trajectory stages see the same parameters."""
+    cfg = compose(overrides, conf_dir=REPO / "conf")
+    seg, traj = section(cfg, "segment"), section(cfg, "trajectory")
+    assert SegmentParams.from_dict(seg) == _old_segment_params(seg)
+    new, old = TrajectoryParams.from_dict(traj), _old_trajectory_params(section(cfg, "trajectory"))
+    assert new == old and json.dumps(new.to_dict()) == json.dumps(old.to_dict())
