@@ -327,3 +327,19 @@ def test_cli_run_only_functions_exist_and_stage_never_calls_them():
     for caller in ("cmd_stage", "main", "stage_output_paths", "_config", "_validate"):
         names = {n.id for n in ast.walk(funcs[caller]) if isinstance(n, ast.Name)}
         assert not names & stage_deps.CLI_RUN_ONLY, caller
+
+
+@pytest.mark.parametrize("args, message", [
+    ([], "usage: "),
+    (["/nonexistent_run", "A", "HEAD", "/nonexistent_scratch"], "no data/output"),
+    (["RUN", "A", "no_such_revision_xyz", "/nonexistent_scratch"], "unknown revision"),
+])
+def test_compare_default_runs_bad_input_one_line_exit_2(tmp_path, args, message):
+    """scripts/compare_default_runs.sh (the default run's byte-identity check) refuses bad input before it
+    clones or runs anything: one line on stderr, exit 2."""
+    (tmp_path / "data" / "output").mkdir(parents=True)
+    args = [str(tmp_path) if a == "RUN" else a for a in args]
+    r = subprocess.run(["bash", str(REPO / "scripts" / "compare_default_runs.sh"), *args], cwd=REPO,
+                       capture_output=True, text=True, encoding="utf-8")
+    assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not Path("/nonexistent_scratch").exists()
