@@ -19,6 +19,10 @@ config, library versions and platform; their ``files`` and ``config`` are compar
   under a key of :data:`room_pipeline.io.metrics.TIMING_KEYS` or named ``seconds`` / ``cpu_seconds``
   (a pose method's time) or ``cpu_time_s``, CSV / Markdown / LaTeX table cells whose column header names a time
   (``s/frame``, ``seconds``, ``time``);
+* encoding only: an OpenEXR file (scanline, ZIPS / ZIP / PXR24 chunks, as :mod:`room_pipeline.io.exr`
+  writes them) whose header and every chunk's inflated bytes (the stored pixels) are the same, while some
+  chunk's deflate stream differs: the same image, deflated to other bytes (ISA-L's deflate does not promise
+  the same stream for the same input: measured, ``benchmarks/results/default_run_identity_s10.md``);
 * different: anything else (a real behaviour change), and files present in one run only.
 
 It writes ``benchmarks/results/NAME.{md,json}`` (default NAME ``run_identity``) and exits 1 when any file
@@ -31,7 +35,9 @@ import csv
 import io
 import json
 import re
+import struct
 import sys
+import zlib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,6 +57,54 @@ RECORDS = re.compile(r"^data/output/manifest(\.[^/]*)?\.json$|^manifest\.[^/]*\.
 EXTRA_TIMING_KEYS = frozenset({"seconds", "cpu_seconds", "cpu_time_s"})
 #: a table column holding a time
 TIME_COLUMN = re.compile(r"s/frame|seconds|\btime\b|_s$", re.I)
+
+
+#: OpenEXR compression ids whose chunks are zlib streams -> scanlines per chunk (ZIPS, ZIP, PXR24)
+EXR_DEFLATE = {2: 1, 3: 16, 5: 16}
+
+
+def exr_chunks(path: Path) -> tuple[dict, list[bytes]] | None:
+    """(header attributes name -> (type, bytes), each chunk's y and inflated bytes) of a single-part scanline
+    OpenEXR with deflated chunks; None for any other file.  A chunk that does not inflate is kept as stored
+    (a chunk not smaller deflated is stored raw), so the same pixels stored raw in one file and deflated in
+    the other count as different (the check errs towards "different")."""
+    b = path.read_bytes()
+    if len(b) < 8 or struct.unpack_from("<i", b, 0)[0] != 20000630 or b[5] & 0x1A:   # tiled, deep, multipart
+        return None
+    i, attrs = 8, {}
+    try:
+        while b[i] != 0:
+            j = b.index(0, i); name = b[i:j].decode(); i = j + 1
+            j = b.index(0, i); kind = b[i:j].decode(); i = j + 1
+            (n,) = struct.unpack_from("<i", b, i); i += 4
+            attrs[name] = (kind, b[i:i + n]); i += n
+        i += 1
+        comp = attrs["compression"][1][0]
+        if comp not in EXR_DEFLATE:
+            return None
+        y0, y1 = struct.unpack("<4i", attrs["dataWindow"][1])[1::2]
+        n = (y1 - y0 + EXR_DEFLATE[comp]) // EXR_DEFLATE[comp]
+        chunks = []
+        for off in struct.unpack_from(f"<{n}Q", b, i):
+            y, size = struct.unpack_from("<ii", b, off)
+            data = b[off + 8:off + 8 + size]
+            try:
+                data = zlib.decompress(data)
+            except zlib.error:
+                pass
+            chunks.append(struct.pack("<i", y) + data)
+    except (KeyError, IndexError, ValueError, struct.error, UnicodeDecodeError):
+        return None
+    return attrs, chunks
+
+
+def _exr_same_pixels(a: Path, b: Path) -> list[str] | None:
+    """The chunks whose deflate streams differ when the two EXR files hold the same header and pixels,
+    else None."""
+    ea, eb = exr_chunks(a), exr_chunks(b)
+    if ea is None or eb is None or ea[0] != eb[0] or ea[1] != eb[1]:
+        return None
+    return ["same header and inflated pixel data; the deflate stream of some chunk differs"]
 
 
 def list_run(run: Path) -> list[dict]:
@@ -124,12 +178,16 @@ def _table_diff(a: str, b: str, kind: str) -> tuple[list[str], list[str]]:
 
 
 def classify(run_a: Path, run_b: Path, rel: str) -> tuple[str, list[str]]:
-    """'timing' or 'different' for a file whose bytes differ, with the differing fields."""
+    """'timing', 'encoding' or 'different' for a file whose bytes differ, with the differing fields."""
     if rel.endswith(TIMING_SUFFIX):
         return "timing", ["(a stage timing file)"]
     a = (run_a / rel).read_text(encoding="utf-8", errors="replace")
     b = (run_b / rel).read_text(encoding="utf-8", errors="replace")
     suffix = Path(rel).suffix
+    if suffix == ".exr":
+        same = _exr_same_pixels(run_a / rel, run_b / rel)
+        return ("encoding", same) if same else ("different", ["EXR pixels or header differ, or not a deflated "
+                                                              "scanline EXR"])
     try:
         if suffix == ".json":
             timing, other = _json_diff(a, b)
@@ -145,7 +203,7 @@ def classify(run_a: Path, run_b: Path, rel: str) -> tuple[str, list[str]]:
 def compare(run_a: Path, run_b: Path) -> dict:
     fa = {f["path"]: f for f in list_run(run_a)}
     fb = {f["path"]: f for f in list_run(run_b)}
-    identical, timing, different = [], {}, {}
+    identical, timing, encoding, different = [], {}, {}, {}
     for p in sorted(set(fa) | set(fb)):
         if p not in fb or p not in fa:
             different[p] = [f"only in {'the first' if p in fa else 'the second'} run"]
@@ -153,16 +211,20 @@ def compare(run_a: Path, run_b: Path) -> dict:
             identical.append(p)
         else:
             kind, fields = classify(run_a, run_b, p)
-            (timing if kind == "timing" else different)[p] = fields
+            {"timing": timing, "encoding": encoding}.get(kind, different)[p] = fields
+    same = set(identical)
     records = {}
     for m in sorted(run_a.glob("manifest.*.json")):
         other = run_b / m.name
         if other.is_file():
             records[m.name] = compare_manifests(json.loads(m.read_text()), json.loads(other.read_text()))
     return {"files": len(set(fa) | set(fb)), "identical": len(identical), "timing_only": timing,
-            "different": different, "bytes_a": sum(f["size"] for f in fa.values()),
+            "encoding_only": encoding, "different": different, "bytes_a": sum(f["size"] for f in fa.values()),
             "bytes_b": sum(f["size"] for f in fb.values()), "run_records": records,
-            "manifest_a": list(fa.values()), "manifest_b": list(fb.values())}
+            # the first run's manifest ("sha256 size path" a line) and the second run's entries that differ
+            "manifest_a": [f"{f['sha256']} {f['size']} {f['path']}" for f in fa.values()],
+            "manifest_b_differing": [f"{f['sha256']} {f['size']} {f['path']}" for p, f in fb.items()
+                                     if p not in same]}
 
 
 def report_md(res: dict, label_a: str, label_b: str, command: str) -> str:
@@ -171,8 +233,11 @@ def report_md(res: dict, label_a: str, label_b: str, command: str) -> str:
          f"- files: {res['files']} ({res['bytes_a']} bytes in the first run, {res['bytes_b']} in the second)",
          f"- byte-identical: **{res['identical']}**",
          f"- differing only in timing fields (wall / CPU seconds): {n_t}",
+         f"- EXR files with the same header and pixels, deflated to other bytes: {len(res.get('encoding_only', {}))}",
          f"- different otherwise, or in one run only: **{n_d}**", "",
-         "Result: " + ("**identical** apart from the timings listed below" if not n_d else "**NOT identical**"),
+         "Result: " + (("**identical** apart from the timings" + (" and the EXR deflate streams" if
+                                                                   res.get("encoding_only") else "")
+                       + " listed below") if not n_d else "**NOT identical**"),
          ""]
     if res["run_records"]:
         L += ["## Run records (`manifest.*.json`: files and config; versions and platform not compared)", ""]
@@ -185,6 +250,12 @@ def report_md(res: dict, label_a: str, label_b: str, command: str) -> str:
         for p, fields in res["timing_only"].items():
             shown = ", ".join(f"`{f}`" for f in fields[:6]) + (f" (+{len(fields) - 6} more)" if len(fields) > 6 else "")
             L.append(f"| {p} | {shown} |")
+        L.append("")
+    if res.get("encoding_only"):
+        L += ["## EXR files with the same header and pixels, deflated to other bytes", "",
+              "| file | what differs |", "|---|---|"]
+        for p, fields in res["encoding_only"].items():
+            L.append(f"| {p} | {'; '.join(fields)} |")
         L.append("")
     if res["different"]:
         L += ["## Different files", "", "| file | what differs |", "|---|---|"]

@@ -48,6 +48,7 @@ TABLE = [
     ("room_pipeline.depth.cnn", "TrainParams", "depth/default.yaml", "train"),
     ("room_pipeline.navigation.planner", "PlannerParams", "navigate/default.yaml", "planner"),
     ("room_pipeline.navigation.closed_loop", "EpisodeParams", "navigate/default.yaml", "episode"),
+    ("room_pipeline.navigation.depth_source", "NavPerception", "navigate/default.yaml", ""),
 ]
 
 
@@ -63,6 +64,8 @@ EXCEPTIONS = {
 CONF_ONLY = {
     ("JointPlanParams", "enabled"): "read by TrajectoryParams (false: the centreline plan, the section's settings "
                                     "still checked); not a parameter of the joint planner",
+    ("NavPerception", "benchmark"): "benchmarks/navigation.py's section (patients, targets, policies), read by "
+                                    "that script; not a parameter of the closed loop",
 }
 #: the photoreal default of issue #15 (conf/render, branch s7_realism) whose code defaults live in stages/render.py,
 #: which that branch does not edit (the stages branch moves RenderParams): port the conf values into RenderParams
@@ -113,7 +116,7 @@ def drifts(module: str, cls_name: str, file: str, dotted: str) -> list[str]:
               row[3] != dotted and row[3].count(".") == (dotted.count(".") + 1 if dotted else 0)}
     out = []
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    for key in sorted(set(conf) - set(fields) - {k for c, k in CONF_ONLY if c == cls_name}):
+    for key in sorted(set(conf) - set(fields) - nested - {k for c, k in CONF_ONLY if c == cls_name}):
         out.append(f"{file}:{dotted or '<root>'}.{key}: in conf/, not a field of {cls_name}")
     for name, f in fields.items():
         if name in nested:            # a nested section: compared by its own row

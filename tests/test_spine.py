@@ -327,3 +327,48 @@ def test_cli_run_only_functions_exist_and_stage_never_calls_them():
     for caller in ("cmd_stage", "main", "stage_output_paths", "_config", "_validate"):
         names = {n.id for n in ast.walk(funcs[caller]) if isinstance(n, ast.Name)}
         assert not names & stage_deps.CLI_RUN_ONLY, caller
+
+
+@pytest.mark.parametrize("args, message", [
+    ([], "usage: "),
+    (["/nonexistent_run", "A", "HEAD", "/nonexistent_scratch"], "no data/output"),
+    (["RUN", "A", "no_such_revision_xyz", "/nonexistent_scratch"], "unknown revision"),
+])
+def test_compare_default_runs_bad_input_one_line_exit_2(tmp_path, args, message):
+    """scripts/compare_default_runs.sh (the default run's byte-identity check) refuses bad input before it
+    clones or runs anything: one line on stderr, exit 2."""
+    (tmp_path / "data" / "output").mkdir(parents=True)
+    args = [str(tmp_path) if a == "RUN" else a for a in args]
+    r = subprocess.run(["bash", str(REPO / "scripts" / "compare_default_runs.sh"), *args], cwd=REPO,
+                       capture_output=True, text=True, encoding="utf-8")
+    assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not Path("/nonexistent_scratch").exists()
+
+
+def test_compare_runs_tells_a_deflate_stream_from_a_pixel_change(tmp_path):
+    """scripts/compare_runs.py classifies an EXR pair: same header and pixels deflated to other bytes (ISA-L
+    level 0 against 1 here) -> 'encoding'; one changed pixel -> 'different'; a file that is no EXR -> 'different'."""
+    import numpy as np
+
+    import compare_runs
+    from room_pipeline.io.exr import encode_exr
+
+    yy, xx = np.mgrid[0:40, 0:30].astype(np.float32)
+    img = np.stack([yy / 40, xx / 30, (yy + xx) / 70], axis=-1)       # compressible: every chunk deflated
+    changed = img.copy()
+    changed[20, 10, 1] += 0.25
+    sides = {"a": {"same.exr": encode_exr(img, ("B", "G", "R"), True, "pxr24", level=1),
+                   "changed.exr": encode_exr(img, ("B", "G", "R"), True, "pxr24", level=1),
+                   "junk.exr": b"plain bytes"},
+             "b": {"same.exr": encode_exr(img, ("B", "G", "R"), True, "pxr24", level=0),
+                   "changed.exr": encode_exr(changed, ("B", "G", "R"), True, "pxr24", level=1),
+                   "junk.exr": b"other bytes"}}
+    assert sides["a"]["same.exr"] != sides["b"]["same.exr"]
+    for side, files in sides.items():
+        (tmp_path / side).mkdir()
+        for name, data in files.items():
+            (tmp_path / side / name).write_bytes(data)
+    kind, why = compare_runs.classify(tmp_path / "a", tmp_path / "b", "same.exr")
+    assert kind == "encoding" and "same header and inflated pixel data" in why[0]
+    assert compare_runs.classify(tmp_path / "a", tmp_path / "b", "changed.exr")[0] == "different"
+    assert compare_runs.classify(tmp_path / "a", tmp_path / "b", "junk.exr")[0] == "different"

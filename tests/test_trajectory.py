@@ -338,7 +338,7 @@ def test_params_yaml_and_validation():
     d = yaml.safe_load((REPO / "conf" / "trajectory" / "default.yaml").read_text())
     assert set(d) == {f.name for f in dataclasses.fields(_TrajectoryParams)}
     TrajectoryParams.from_dict(d)  # the pipeline's choices are valid (they may differ from library defaults)
-    with pytest.raises(ConfigError, match="'speed_mm'"):
+    with pytest.raises(ConfigError, match="'trajectory.speed_mm'"):
         TrajectoryParams.from_dict({"speed_mm": 3})
     for bad in ({"targets": "all"}, {"unreachable": "skip"}, {"speed_mm_s": 0}, {"rate_hz": "10"},
                 {"targets": "points"}, {"curvature_safety": 1.5}, {"image_up": "left"}):

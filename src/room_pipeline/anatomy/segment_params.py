@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Mapping
 
+from ..config.params import params_from_dict
 from ..errors import ConfigError
 from ..io.volume import Volume
 
@@ -68,41 +69,15 @@ class SegmentParams:
     #: TotalSegmentator only: 'cpu', 'gpu' or 'gpu:N'
     device: str = "cpu"
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "SegmentParams":
-        """Build from a config mapping; unknown keys or invalid values raise :class:`ConfigError`."""
-        d = dict(d or {})
-        names = {f.name: f for f in dataclasses.fields(cls)}
-        for k in d:
-            if k not in names:
-                raise ConfigError(f"segment: unknown key '{k}' (known: {', '.join(names)})")
-        kw: dict[str, Any] = {}
-        for k, v in d.items():
-            default = names[k].default
-            try:
-                if v is None:
-                    if k not in ("refine_hu", "thin_airway_hu", "weights_dir"):
-                        raise ValueError("null not allowed")
-                    kw[k] = None
-                elif isinstance(default, bool):
-                    if not isinstance(v, bool):
-                        raise ValueError("expected true/false")
-                    kw[k] = v
-                elif isinstance(default, int):
-                    if isinstance(v, bool) or float(v) != int(v):
-                        raise ValueError("expected an integer")
-                    kw[k] = int(v)
-                elif isinstance(default, float) or k in ("refine_hu", "thin_airway_hu"):
-                    if isinstance(v, bool):
-                        raise ValueError("expected a number")
-                    kw[k] = float(v)
-                else:
-                    kw[k] = str(v)
-            except (TypeError, ValueError) as exc:
-                raise ConfigError(f"segment.{k}: invalid value {v!r} ({exc})") from None
-        p = cls(**kw)
-        p.validate()
-        return p
+        """Build from a config mapping (:func:`~room_pipeline.config.params.params_from_dict`: ``refine_hu``,
+        ``thin_airway_hu`` and ``weights_dir`` may be null; then :meth:`validate` in :meth:`__post_init__`);
+        unknown keys or invalid values raise :class:`ConfigError` naming the key."""
+        return params_from_dict(cls, d, "segment")
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` on an inconsistent value."""

@@ -27,9 +27,16 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from ..config.params import params_from_dict
 from ..errors import BackendUnavailable, ConfigError, InputError
 from ..render.camera import CameraIntrinsics
 from .perception import median_scale
+
+
+#: the ``navigate`` section's sub-sections and their readers (the rest of the section is :class:`NavPerception`)
+NAVIGATE_SUBSECTIONS = {"planner": "navigation.planner.PlannerParams",
+                        "episode": "navigation.closed_loop.EpisodeParams",
+                        "benchmark": "benchmarks/navigation.py"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,8 +54,12 @@ class NavPerception:
 
     @classmethod
     def from_navigate(cls, nav: Mapping[str, Any] | None) -> "NavPerception":
-        nav = dict(nav or {})
-        return cls(depth=str(nav.get("depth", cls.depth)), noise=float(nav.get("noise", cls.noise)))
+        """From the whole ``navigate`` section: its scalar keys are this class's fields, read through
+        :func:`~room_pipeline.config.params.params_from_dict` (then :meth:`__post_init__`); its sub-sections
+        (:data:`NAVIGATE_SUBSECTIONS`) belong to other readers and are left out, so any other key is unknown
+        and raises :class:`ConfigError` naming it."""
+        view = {k: v for k, v in dict(nav or {}).items() if k not in NAVIGATE_SUBSECTIONS}
+        return params_from_dict(cls, view, "navigate")
 
 
 def loop_camera(image_px: int, fov_deg: float) -> CameraIntrinsics:

@@ -9,6 +9,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..config.params import params_from_dict
 from ..errors import ConfigError
 
 
@@ -124,13 +125,13 @@ class TrajectoryParams:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "TrajectoryParams":
-        """Build from a config section; an unknown key raises :class:`ConfigError` naming it."""
-        d = dict(d or {})
-        known = [f.name for f in dataclasses.fields(cls)]
-        for key in d:
-            if key not in known:
-                raise ConfigError(f"trajectory: unknown config key '{key}' (known: {', '.join(known)})")
-        return cls(**d)
+        """Build from a config section (:func:`~room_pipeline.config.params.params_from_dict`, then
+        :meth:`__post_init__`); an unknown key or a bad value raises :class:`ConfigError` naming it.
+
+        The numbers reach :meth:`to_dict` (``trajectory.json``'s ``params``) converted to their field's type
+        exactly as a direct ``TrajectoryParams(**d)`` converts them in :meth:`__post_init__` (an int to float
+        for a float field), so both write the same bytes (tests/test_params.py)."""
+        return params_from_dict(cls, d, "trajectory")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

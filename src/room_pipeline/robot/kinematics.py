@@ -55,6 +55,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..config.params import params_from_dict
 from ..errors import ConfigError
 
 
@@ -96,13 +97,10 @@ class ScopeGeometry:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "ScopeGeometry":
-        """Build from a config mapping; an unknown key raises :class:`ConfigError` naming it."""
-        d = dict(d or {})
-        known = [f.name for f in dataclasses.fields(cls)]
-        for key in sorted(d, key=str):
-            if key not in known:
-                raise ConfigError(f"robot: unknown key '{key}' (known: {', '.join(known)})")
-        return cls(**d)
+        """Build from a mapping with keys ``l``, ``gamma``, ``q1_max`` (m; no conf/ section: the scope's
+        geometry is the code default) through :func:`~room_pipeline.config.params.params_from_dict`, then
+        :meth:`__post_init__`; an unknown key or a bad value raises :class:`ConfigError` naming it."""
+        return params_from_dict(cls, d, "robot")
 
     @property
     def kappa_max(self) -> float:
