@@ -91,7 +91,6 @@ from ..robot.controller import rate_limit
 from ..robot.kinematics import ScopeGeometry
 from ..geometry.rotations import rz as _rz
 from ..robot.pybullet_adapter import ScopeSim
-from ..robot.route import Route
 from ..robot.sim_params import SimParams
 from .airways import COMMANDS, Airways, Patient, check_target, generation_targets, operator_command, start_pose  # noqa: F401
 from .lumen import TrueLumen
