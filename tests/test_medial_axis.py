@@ -524,14 +524,7 @@ def _crop_above(vol: Volume, z: float) -> Volume:
 #: rules drop it); Med-MPD 3 cut 5 / 2 mm above: the skeleton forks exactly at the full mask's carina, but
 #: within its own radius (6.3 mm) of the cut, so it is read as a fork made by the cut, and the trunk's widest
 #: point lies 11.8 mm lower (this trunk widens below its bifurcation, 6.3 -> 6.8 mm)
-KNOWN_CUT_LIMITS = {
-    ("patient1", 5.0): "known limit (issue #18): Med-MPD 1 cut 5 mm above, the full mask's first bifurcation is "
-                       "a medial-sheet line's junction 12.2 mm above the real carina the cut tree finds (bound 7.5)",
-    ("patient1", 2.0): "known limit (issue #18): Med-MPD 1 cut 2 mm above, as at 5 mm: 9.3 mm (bound 6)",
-    ("patient3", 5.0): "known limit (issue #18): Med-MPD 3 cut 5 mm above, the fork at the carina lies within its "
-                       "radius of the cut; the trunk's widest point is 11.8 mm lower (bound 7.5)",
-    ("patient3", 2.0): "known limit (issue #18): Med-MPD 3 cut 2 mm above, as at 5 mm: 11.8 mm (bound 6)",
-}
+KNOWN_CUT_LIMITS: dict = {}   # none left (issue #18 round 10: the twig and kept-fork rules)
 
 
 @pytest.mark.shared
@@ -557,8 +550,11 @@ def test_real_mask_cut_above_the_carina(parts, above_mm, request):
     rep = {k: v for k, v in res.report.items() if k.startswith("root")}
     ztop = cut.index_to_world(np.argwhere(cut.data > 0).astype(float))[:, 2].max()
     start, end = g.root.points[0], g.root.points[-1]
-    assert start[2] > ztop - 3 * MM, rep                                   # at the cut ...
     tr = ref.root.points
+    print(f"\n{name} cut {above_mm:g} mm above: root end {np.linalg.norm(end - carina) / MM:.1f} mm from the carina "
+          f"(bound {5 + 0.5 * above_mm:g}), start {np.min(np.linalg.norm(tr - start, axis=1)) / MM:.2f} mm from the "
+          f"trachea's centreline (bound 3); {rep}")
+    assert start[2] > ztop - 3 * MM, rep                                   # at the cut ...
     assert np.min(np.linalg.norm(tr - start, axis=1)) < 3 * MM, rep       # ... on the trachea's centreline
     assert np.linalg.norm(end - carina) < 5 * MM + 0.5 * above_mm * MM, (end / MM, carina / MM, rep)
     assert len(g.children(g.root.id)) >= 2 and len(g.branches) >= 15
