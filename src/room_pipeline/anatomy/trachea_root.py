@@ -9,7 +9,8 @@ apart because they are one job -- reading the top of the skeleton -- with their 
 - a flattened trachea (its medial set a sheet): the top cross-section's centre (:func:`_top_centre`), the
   lumen's cross-section aspect ratio (:func:`_cross_section_aspect`, threshold :data:`FLAT_ASPECT`), the
   sheet test (:func:`_sheet_like`, :data:`SHEET_RATIO`), the sheet (:func:`_trachea_sheet`) and the one
-  trunk across it (:func:`_sheet_trunk`).
+  trunk across it (:func:`_sheet_trunk`);
+- a twig at the first bifurcation whose lumen never leaves the tree's (:func:`_twig_inside_lumen`).
 
 Units: metres (the SDF's world frame), radii as ``-sdf``; ``field`` is the medial axis's interpolated SDF.
 """
