@@ -524,14 +524,11 @@ def _crop_above(vol: Volume, z: float) -> Volume:
 #: rules drop it); Med-MPD 3 cut 5 / 2 mm above: the skeleton forks exactly at the full mask's carina, but
 #: within its own radius (6.3 mm) of the cut, so it is read as a fork made by the cut, and the trunk's widest
 #: point lies 11.8 mm lower (this trunk widens below its bifurcation, 6.3 -> 6.8 mm)
-KNOWN_CUT_LIMITS = {
-    ("patient1", 5.0): "known limit (issue #18): Med-MPD 1 cut 5 mm above, the full mask's first bifurcation is "
-                       "a medial-sheet line's junction 12.2 mm above the real carina the cut tree finds (bound 7.5)",
-    ("patient1", 2.0): "known limit (issue #18): Med-MPD 1 cut 2 mm above, as at 5 mm: 9.3 mm (bound 6)",
-    ("patient3", 5.0): "known limit (issue #18): Med-MPD 3 cut 5 mm above, the fork at the carina lies within its "
-                       "radius of the cut; the trunk's widest point is 11.8 mm lower (bound 7.5)",
-    ("patient3", 2.0): "known limit (issue #18): Med-MPD 3 cut 2 mm above, as at 5 mm: 11.8 mm (bound 6)",
-}
+_FLARE = ("known limit (issue #18): Med-MPD 1 cut {} mm above its real carina (the reference since the twig rule): "
+          "the top cross-section is the carinal flare (aspect 1.68, sheet fraction 0.98), the flattened-trachea rule "
+          "fires and the root ends {} mm from the carina (bound {})")
+KNOWN_CUT_LIMITS = {("patient1", 10.0): _FLARE.format(10, 13.9, 10), ("patient1", 5.0): _FLARE.format(5, 13.8, 7.5),
+                    ("patient1", 2.0): _FLARE.format(2, 15.3, 6)}
 
 
 @pytest.mark.shared
@@ -557,11 +554,67 @@ def test_real_mask_cut_above_the_carina(parts, above_mm, request):
     rep = {k: v for k, v in res.report.items() if k.startswith("root")}
     ztop = cut.index_to_world(np.argwhere(cut.data > 0).astype(float))[:, 2].max()
     start, end = g.root.points[0], g.root.points[-1]
-    assert start[2] > ztop - 3 * MM, rep                                   # at the cut ...
     tr = ref.root.points
+    print(f"\n{name} cut {above_mm:g} mm above: root end {np.linalg.norm(end - carina) / MM:.1f} mm from the carina "
+          f"(bound {5 + 0.5 * above_mm:g}), start {np.min(np.linalg.norm(tr - start, axis=1)) / MM:.2f} mm from the "
+          f"trachea's centreline (bound 3); {rep}")
+    assert start[2] > ztop - 3 * MM, rep                                   # at the cut ...
     assert np.min(np.linalg.norm(tr - start, axis=1)) < 3 * MM, rep       # ... on the trachea's centreline
     assert np.linalg.norm(end - carina) < 5 * MM + 0.5 * above_mm * MM, (end / MM, carina / MM, rep)
     assert len(g.children(g.root.id)) >= 2 and len(g.branches) >= 15
+
+
+def _capsules_mask(segs, lo, hi, h: float = 1.0) -> Volume:
+    """Union of capsules ``(p0, p1, radius)`` (mm) on a grid of ``h`` mm from ``lo`` to ``hi`` (mm)."""
+    ax = [np.arange(lo[i], hi[i] + 1e-9, h) for i in range(3)]
+    X = np.stack(np.meshgrid(*ax, indexing="ij"), -1)
+    m = np.zeros(X.shape[:3], dtype=bool)
+    for p0, p1, r in segs:
+        p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+        t = np.clip(((X - p0) @ (p1 - p0)) / ((p1 - p0) @ (p1 - p0)), 0.0, 1.0)
+        m |= np.linalg.norm(X - (p0 + t[..., None] * (p1 - p0)), axis=-1) <= r
+    aff = np.diag([h * MM] * 3 + [1.0])
+    aff[:3, 3] = np.asarray(lo, float) * MM
+    return Volume(m.astype(np.uint8), aff)
+
+
+# a trachea (8 mm radius, carina at z = -10 mm) over two main bronchi that divide once each (mm)
+_Y_TREE = [((0, 0, 60), (0, 0, -10), 8.0),
+           ((0, 0, -10), (20, 0, -30), 6.0), ((20, 0, -30), (25, 0, -60), 4.0), ((20, 0, -30), (45, 0, -40), 4.0),
+           ((0, 0, -10), (-20, 0, -30), 6.0), ((-20, 0, -30), (-25, 0, -60), 4.0), ((-20, 0, -30), (-45, 0, -40), 4.0)]
+
+
+@pytest.mark.parametrize("offset_mm", [11.0, 12.5])
+def test_a_twig_whose_lumen_stays_in_the_tracheas_is_not_the_first_bifurcation(offset_mm):
+    """Issue #18 item 2 (AirQuant resampled to 1 mm: a 20 mm twig of radius 8.9 mm on the trachea's medial band
+    taken as the first bifurcation, 92 mm above the carina): the trachea widened on one side by a parallel
+    lumen (5.5 mm radius, its axis ``offset_mm`` beside the trachea's, z 40 .. -2 mm) grows a medial line that
+    ends without dividing and never leaves the lumen around the trachea; it is dropped and the root runs on
+    to the carina (within 3 mm)."""
+    side = [((0, offset_mm, 40), (0, offset_mm, -2), 5.5)]
+    vol = _capsules_mask(_Y_TREE + side, (-55, -16, -70), (55, 22, 66))
+    res = extract_medial_axis(compute_sdf(crop_to_interior(vol, 6), SdfParams()))
+    g = res.graph
+    check_tree(g)
+    assert res.report["root_twigs_dropped"] >= 1
+    assert np.linalg.norm(g.root.points[-1] - np.array([0, 0, -10]) * MM) < 3 * MM, g.root.points[-1] / MM
+    assert len(g.children(g.root.id)) == 2 and len(g.branches) == 7
+
+
+@pytest.mark.parametrize("length_mm, radius_mm", [(15.0, 3.0), (25.0, 3.0), (25.0, 4.5)])
+def test_a_real_side_branch_of_the_trachea_stays_a_branch(length_mm, radius_mm):
+    """The twig rule keeps a real side branch off the trachea (a tracheal bronchus, 60 deg from the trachea's
+    axis at z = 30 mm, ending without dividing): narrower than half the trachea, or parted from it by a wall;
+    it stays the first bifurcation."""
+    tip = (0, length_mm * np.sin(np.pi / 3), 30 - length_mm * np.cos(np.pi / 3))
+    vol = _capsules_mask(_Y_TREE + [((0, 0, 30), tip, radius_mm)], (-55, -16, -70), (55, 12 + length_mm, 66))
+    res = extract_medial_axis(compute_sdf(crop_to_interior(vol, 6), SdfParams()))
+    g = res.graph
+    check_tree(g)
+    assert res.report["root_twigs_dropped"] == 0
+    assert abs(g.root.points[-1][2] - 30 * MM) < 5 * MM, g.root.points[-1] / MM
+    kids = g.children(g.root.id)
+    assert sorted(len(g.children(c.id)) for c in kids) == [0, 2]
 
 
 @pytest.mark.parametrize("n_islands", [10, 90])

@@ -9,7 +9,8 @@ apart because they are one job -- reading the top of the skeleton -- with their 
 - a flattened trachea (its medial set a sheet): the top cross-section's centre (:func:`_top_centre`), the
   lumen's cross-section aspect ratio (:func:`_cross_section_aspect`, threshold :data:`FLAT_ASPECT`), the
   sheet test (:func:`_sheet_like`, :data:`SHEET_RATIO`), the sheet (:func:`_trachea_sheet`) and the one
-  trunk across it (:func:`_sheet_trunk`).
+  trunk across it (:func:`_sheet_trunk`);
+- a twig at the first bifurcation whose lumen never leaves the tree's (:func:`_twig_inside_lumen`).
 
 Units: metres (the SDF's world frame), radii as ``-sdf``; ``field`` is the medial axis's interpolated SDF.
 """
@@ -347,3 +348,17 @@ def _sheet_trunk(root: int, on_sheet: np.ndarray, pts: np.ndarray, rad: np.ndarr
         if n not in trunk:
             trunk.append(n)
     return np.array(trunk, dtype=np.int64)
+
+
+def _twig_inside_lumen(twig: np.ndarray, others: np.ndarray, field: _Field, voxel: float) -> bool:
+    """True when a branch's lumen never leaves the lumen around the other branches: from each of the twig's
+    skeleton points (metres, (N, 3)) the straight segment to the nearest of ``others`` (metres, (M, 3)) lies
+    inside the lumen (sdf < 0 at samples every ``voxel`` / 4 m).  A real branch is parted from its siblings
+    by a wall (a carinal ridge) that such a segment crosses."""
+    if len(twig) == 0 or len(others) == 0:
+        return False
+    _, j = cKDTree(others).query(twig)
+    d = float(np.linalg.norm(others[j] - twig, axis=1).max())
+    t = np.linspace(0.0, 1.0, max(2, int(np.ceil(d / (0.25 * voxel)))) + 1)[:, None, None]
+    seg = (twig[None] + t * (others[j] - twig)[None]).reshape(-1, 3)
+    return bool(np.all(field.sample(field.to_index(seg))[:, 0] < 0))
