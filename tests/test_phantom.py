@@ -347,13 +347,13 @@ def test_anisotropic_spacing():
 
 
 def test_default_size_run(default_run):
-    """The one default-size run: figures, time and the trachea inside the volume."""
+    """The one default-size run: figures and the trachea inside the volume (its time is printed, not asserted:
+    tests never bound wall-clock time; the phantom's cost is in benchmarks/)."""
     ph, wall = default_run
     n = int(np.prod(ph.ct.shape))
     print(f"default phantom: shape {ph.ct.shape}, {n / 1e6:.1f} M voxels, {len(ph.tree)} branches, "
           f"max generation {ph.tree.max_generation}, {wall:.1f} s")
     assert 15e6 < n < 45e6
-    assert wall < 60
     assert ph.tree.max_generation >= 6
     assert ph.mask.data[:, :, -1].sum() == 0 and ph.mask.data.sum() > 0
     np.testing.assert_allclose(ph.ct.spacing, 0.7 * MM)
