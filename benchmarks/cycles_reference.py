@@ -524,6 +524,18 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
     write_md(doc)
 
 
+def _light_text(rp: dict) -> str:
+    """The tip light as the run's render parameters had it (offset in mm, angular profile, falloff)."""
+    off = rp.get("light_offset_mm")
+    mu = rp.get("light_spot_exponent")
+    where = f"{float(np.linalg.norm(off)):.1f} mm off axis" if off is not None else "offset not recorded"
+    shape = ("isotropic" if mu == 0 else f"cos^{mu:g}") if mu is not None else "profile not recorded"
+    extra = ""
+    if rp.get("indirect_caustics") is not None:
+        extra = f", inter-reflection {'with' if rp['indirect_caustics'] else 'without'} the wet layer at bounced walls"
+    return f"tip light {where}, {shape}, {rp.get('light_falloff', 'inverse_square')} falloff{extra}"
+
+
 def write_md(d: dict) -> None:
     m = d["machine"]
     a = d["args"]
@@ -533,7 +545,7 @@ def write_md(d: dict) -> None:
          f"other jobs (load average {m['load_avg_at_start'][0]:.1f} at start, {m['load_avg_at_end'][0]:.1f} at end; "
          f"{m['cpu_threads']} threads); no GPU.  Scene: the render stage's default (the ray caster with its "
          "precomputed inter-reflection and the appearance function per pixel; Cycles evaluating the same function "
-         "per shading point, OSL; tip light 1.1 mm off axis, cos^2.767; the view's automatic exposure metered as "
+         f"per shading point, OSL; {_light_text(d.get('render_params') or {})}; the view's automatic exposure metered as "
          "the render stage meters it, veiling glare, sRGB, 8 bits for every method).  The reference renders the "
          f"mesh subdivided {a['ref_subdivide']} times (the parent's smooth normals).  CPU s = process CPU time per "
          "frame (all threads), scene and precomputed transport built.", ""]
