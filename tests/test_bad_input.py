@@ -661,3 +661,17 @@ def test_rerun_with_fewer_frames_leaves_no_stale_frames(reference_run, tmp_path)
     for d in ("rgb", "depth", "optical_flow"):
         assert len([p for p in (seq / d).iterdir() if p.name.startswith("frame_")]) == 2, d
     assert len(json.loads((seq / "metadata" / "render.json").read_text())["frames"]) == 2
+
+
+def test_ctrl_c_before_the_handler_is_installed_is_one_line(monkeypatch, capsys):
+    """A terminal's Ctrl-C goes to the whole process group, so it can reach a stage process that is still
+    parsing or importing (CI saw a traceback from `from .io import outputs`): exit 130, one line, no traceback."""
+    from room_pipeline import cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert cli.main(["params", "--check"]) == 130
+    err = capsys.readouterr().err
+    assert err == "room: interrupted\n"

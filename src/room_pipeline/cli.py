@@ -322,6 +322,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The `room` command: exit status 0, 2 (bad input: one line), 130 (interrupted) or 143 (terminated)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        # Ctrl-C before _main installed its handler (the process was still parsing or importing: a terminal's
+        # Ctrl-C reaches a just-started stage process too): nothing was written yet; one line, no traceback
+        print("room: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     # overrides (key=value) may come before or after the options
     args, extra = parser.parse_known_args(argv)
