@@ -161,6 +161,21 @@ def raycast_linear(sc, per_pixel: bool, indirect, threads: int, stride: int = 2,
     return out["rgb_linear"], time.process_time() - c0, build
 
 
+def scene_and_views(args):
+    """(scene, graph, views, names, rp): the render stage's scene of ``args.inputs`` / ``args.sequence`` at
+    ``args.res`` with the ``--set KEY=JSON`` overrides (``rp``: its render parameters), its named views and the
+    ones ``--views`` asks for (bpy imported first: pymeshlab / Open3D must not come before it in a process)."""
+    import bpy  # noqa: F401
+
+    from cycles_reference import build_scene, pick_views, render_params
+
+    sets = {k: json.loads(v) for k, v in (x.split("=", 1) for x in args.set)}
+    rp = render_params(sets)
+    scene, graph = build_scene(Path(args.inputs), args.sequence, rp, args.res)
+    scene.vertex_albedo()
+    return scene, graph, pick_views(scene, graph), [v for v in args.views.split(",") if v], rp
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--inputs", default=str(ROOT / "data" / "output" / "patient_000"))
@@ -195,17 +210,9 @@ def main() -> None:
         print(f"realism_indirect: --ref-textures takes vertex and/or per_point, got {args.ref_textures!r}",
               file=sys.stderr)
         sys.exit(2)
-    import bpy  # noqa: F401
-
-    from cycles_reference import build_scene, pick_views, render_params
     from room_pipeline.render.indirect import IndirectConfig
 
-    sets = {k: json.loads(v) for k, v in (x.split("=", 1) for x in args.set)}
-    rp = render_params(sets)
-    scene, graph = build_scene(Path(args.inputs), args.sequence, rp, args.res)
-    scene.vertex_albedo()
-    views = pick_views(scene, graph)
-    names = [v for v in args.views.split(",") if v]
+    scene, graph, views, names, rp = scene_and_views(args)
     normals = lumen_normals(scene.mesh)
     film = scene.film
     rows = []

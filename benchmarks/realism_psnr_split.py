@@ -102,17 +102,10 @@ def main() -> None:
     if not Path(args.inputs, "anatomy", "lung_model.obj").exists():
         print(f"realism_psnr_split: no anatomy/lung_model.obj under {args.inputs}", file=sys.stderr)
         sys.exit(2)
-    import bpy  # noqa: F401
+    from realism_indirect import (grid_boxes, lumen_normals, metered_ev, one_view, psnr, reference, scene_and_views,
+                                  to8)
 
-    from cycles_reference import build_scene, pick_views, render_params
-    from realism_indirect import grid_boxes, lumen_normals, metered_ev, one_view, psnr, reference, to8
-
-    sets = {k: json.loads(v) for k, v in (x.split("=", 1) for x in args.set)}
-    rp = render_params(sets)
-    scene, graph = build_scene(Path(args.inputs), args.sequence, rp, args.res)
-    scene.vertex_albedo()
-    views = pick_views(scene, graph)
-    names = [v for v in args.views.split(",") if v]
+    scene, graph, views, names, rp = scene_and_views(args)
     for p in (int(x) for x in args.poses.split(",") if x):
         views[f"pose_{p}"] = p
         names.append(f"pose_{p}")

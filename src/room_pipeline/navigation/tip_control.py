@@ -39,7 +39,16 @@ def reach_command(target_world: np.ndarray, base_frame, q_prev: np.ndarray, geom
     lat = l * np.where(th > 1e-9, (1 - np.cos(th)) / np.maximum(th, 1e-12), 0.0)
     ax = l * np.where(th > 1e-9, np.sin(th) / np.maximum(th, 1e-12), 1.0)
     theta = float(th[np.argmin((lat - r) ** 2 + (ax - z) ** 2)])
-    q2 = float(q_prev[1]) + _wrap(math.atan2(t[0], -t[1]) - float(q_prev[1])) if r > 1e-9 else float(q_prev[1])
+    return _bend_command(theta, float(t[0]), float(t[1]), q_prev, q3, geometry, hold_fraction, free_fraction)
+
+
+def _bend_command(theta: float, x: float, y: float, q_prev: np.ndarray, q3: float, geometry: ScopeGeometry,
+                  hold_fraction: float, free_fraction: float) -> np.ndarray:
+    """Joints bending the segment by ``theta`` (rad) toward the base-frame direction (``x``, ``y``): q2 the
+    roll nearest ``q_prev``'s that points the bend there (kept when the direction is the axis), q1 clipped to
+    its limit, the roll held near zero bending (:func:`regularise_roll`)."""
+    r = math.hypot(x, y)
+    q2 = float(q_prev[1]) + _wrap(math.atan2(x, -y) - float(q_prev[1])) if r > 1e-9 else float(q_prev[1])
     q = np.array([-2.0 * geometry.gamma * theta, q2, q3])
     q[0] = max(-geometry.q1_max, min(geometry.q1_max, q[0]))
     if hold_fraction > 0 or free_fraction > 0:
@@ -108,13 +117,7 @@ def aim_command(target_world: np.ndarray, tip_world: np.ndarray, base_frame, q_p
         return np.array([float(q_prev[0]), float(q_prev[1]), q3])
     d = d / n
     theta = min(math.acos(max(-1.0, min(1.0, float(d[2])))), geometry.theta_max)
-    r = math.hypot(float(d[0]), float(d[1]))
-    q2 = float(q_prev[1]) + _wrap(math.atan2(d[0], -d[1]) - float(q_prev[1])) if r > 1e-9 else float(q_prev[1])
-    q = np.array([-2.0 * geometry.gamma * theta, q2, q3])
-    q[0] = max(-geometry.q1_max, min(geometry.q1_max, q[0]))
-    if hold_fraction > 0 or free_fraction > 0:
-        q = regularise_roll(q, float(q_prev[1]), geometry.q1_max, hold_fraction, free_fraction, project=False)
-    return q
+    return _bend_command(theta, float(d[0]), float(d[1]), q_prev, q3, geometry, hold_fraction, free_fraction)
 
 
 def _model_error(q: np.ndarray, base_frame, geometry: ScopeGeometry, p_tip: np.ndarray) -> np.ndarray:
