@@ -1,8 +1,12 @@
-"""room_pipeline.io.exr: the NumPy + ISA-L OpenEXR writer decodes, in OpenImageIO and OpenCV, to exactly
-what OpenImageIO's own writer stores (every codec it encodes, half and float, special values)."""
+"""room_pipeline.io.exr: the NumPy + libdeflate OpenEXR writer decodes, in OpenImageIO and OpenCV, to exactly
+what OpenImageIO's own writer stores (every codec it encodes, half and float, special values), and writes the
+same bytes for the same image in any process."""
 from __future__ import annotations
 
+import hashlib
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -107,14 +111,68 @@ def test_storage_exr_writer_knob(tmp_path):
     normals = rng.normal(size=(20, 30, 3)).astype(np.float32)
     flow = rng.normal(0, 5, (20, 30, 2)).astype(np.float32)
     out = {}
-    for w in ("isal", "openimageio"):
+    for w in ("libdeflate", "openimageio"):
         st = StorageParams.from_dict({"exr_writer": w})
         st.write_depth(tmp_path / f"d_{w}.exr", depth, hit)
         st.write_normals(tmp_path / f"n_{w}.exr", normals)
         st.write_flow(tmp_path / f"f_{w}.exr", flow)
         out[w] = [read_exr(tmp_path / f"{k}_{w}.exr") for k in "dnf"]
-        assert ("ISA-L" if w == "isal" else "OpenImageIO") in st.precision()["exr_writer"]
-    for (a, an, aa), (b, bn, ba) in zip(out["isal"], out["openimageio"]):
+        assert ("libdeflate" if w == "libdeflate" else "OpenImageIO") in st.precision()["exr_writer"]
+    for (a, an, aa), (b, bn, ba) in zip(out["libdeflate"], out["openimageio"]):
         assert np.array_equal(a, b) and an == bn and aa == ba
     with pytest.raises(ConfigError, match=r"render\.storage\.exr_writer"):
         StorageParams.from_dict({"exr_writer": "tiff"})
+    with pytest.raises(ConfigError, match="replaced by 'libdeflate'"):
+        StorageParams.from_dict({"exr_writer": "isal"})
+
+
+#: one process's encoding of :func:`_frame_like` in every codec the writer deflates: sha256 of the file bytes
+_WRITE_IN_A_PROCESS = """
+import hashlib, sys
+import numpy as np
+from room_pipeline.io import exr
+y, x = np.mgrid[0:96, 0:128].astype(np.float32)
+rng = np.random.default_rng(11)
+n = np.stack([np.sin(x / 17.0), np.cos(y / 13.0), np.sin((x + y) / 29.0)], -1) + rng.normal(0, 1e-3, (96, 128, 3))
+d = (0.02 + 0.01 * np.sin(x / 9.0) * np.cos(y / 7.0)).astype(np.float32)
+for comp in ("zip", "zips", "pxr24"):
+    for half in (True, False):
+        print(comp, half, hashlib.sha256(exr.encode_exr(n, ("R", "G", "B"), half, comp)).hexdigest(),
+              hashlib.sha256(exr.encode_exr(d, ("Y",), half, comp)).hexdigest())
+"""
+
+
+def _hashes_in_a_new_process() -> str:
+    env = {**os.environ, "PYTHONHASHSEED": "random"}
+    r = subprocess.run([sys.executable, "-c", _WRITE_IN_A_PROCESS], capture_output=True, text=True,
+                       encoding="utf-8", env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def test_same_image_same_bytes_in_two_processes():
+    """The product's promise (same config -> same bytes) holds for the EXR files: one image encoded in two
+    separate processes gives one file, in every deflated codec, half and float (ISA-L, the codec before
+    session 11, gave some chunk 1-2 bytes apart in two default runs; libdeflate is deterministic)."""
+    first, second = _hashes_in_a_new_process(), _hashes_in_a_new_process()
+    assert len(first.splitlines()) == 6 and first == second
+
+
+def test_deflate_is_libdeflate_at_the_writers_level(tmp_path):
+    """The chunks are libdeflate's zlib streams at DEFLATE_LEVEL (any zlib inflates them); a level outside
+    libdeflate's 1..12 is refused."""
+    import zlib
+
+    import deflate
+
+    data = np.arange(50000, dtype=np.uint16).tobytes()
+    assert exr.deflate_zlib(data) == deflate.zlib_compress(data, exr.DEFLATE_LEVEL)
+    assert zlib.decompress(exr.deflate_zlib(data)) == data
+    a = _images()[0][1]
+    for bad in (0, 13):
+        with pytest.raises(ValueError, match="libdeflate level"):
+            exr.encode_exr(a, ("R", "G", "B"), True, "zip", level=bad)
+    custom = exr.encode_exr(a, ("R", "G", "B"), True, "zip", deflate=lambda b: zlib.compress(b, 6))
+    (tmp_path / "z.exr").write_bytes(custom)
+    assert np.array_equal(read_exr(tmp_path / "z.exr")[0], a.astype(np.float16).astype(np.float32))
+    assert hashlib.sha256(custom).hexdigest() != hashlib.sha256(exr.encode_exr(a, ("R", "G", "B"), True, "zip")).hexdigest()

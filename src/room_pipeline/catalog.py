@@ -205,3 +205,18 @@ def sequence_paths(output_dir: str | Path, patient: str, sequence: str) -> Seque
 
 def evaluation_paths(output_dir: str | Path, patient: str, sequence: str) -> EvaluationPaths:
     return EvaluationPaths(evaluation_root(output_dir) / patient / sequence)
+
+
+def find_sequences(root: str | Path, record: str = "render_json") -> list[SequencePaths]:
+    """The sequences below ``root`` whose ``record`` file exists, sorted by path.
+
+    ``root``: a dataset root (``<patient>/<sequence>`` below it), a patient folder (``<sequence>``) or a
+    sequence folder itself.  ``record``: a :class:`SequencePaths` file property, e.g. ``render_json`` (a
+    rendered sequence), ``trajectory`` (planned) or ``simulation`` (simulated).
+    """
+    root = Path(root)
+    if not isinstance(getattr(SequencePaths, record, None), property):
+        raise ConfigError(f"unknown sequence record {record!r}")
+    candidates = [root, *root.glob("*"), *root.glob("*/*")]
+    return sorted((s for s in map(SequencePaths, candidates) if getattr(s, record).is_file()),
+                  key=lambda s: s.root)

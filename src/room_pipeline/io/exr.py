@@ -1,11 +1,19 @@
-"""OpenEXR scanline files encoded with NumPy and ISA-L's deflate: the render stage's EXR writer.
+"""OpenEXR scanline files encoded with NumPy and libdeflate: the render stage's EXR writer.
 
 Why not OpenImageIO for writing: on a 600x600 frame OpenImageIO 3.0 / OpenEXR 3.3 spend 8-17 ms of CPU
 on an *uncompressed* file (its per-scanline pipeline), more than the deflate itself, and they hold
 the GIL while casting is done on the same core.  Here a whole image is laid out by a few NumPy
-operations and each chunk is deflated by ISA-L (``isal.isal_zlib``: standard zlib streams, several
-times faster than zlib at its low levels), so a frame's three EXR files cost about a third of the CPU
-(``benchmarks/results/write_throughput.md``).  Reading stays with OpenImageIO
+operations and each chunk is deflated by libdeflate (the ``deflate`` package: standard zlib streams,
+faster than zlib at the same size), so a frame's three EXR files cost about a third of the CPU
+(``benchmarks/results/write_throughput.md``).
+
+Why libdeflate: the product promises the same bytes for the same config, and the deflate stream is
+part of the bytes.  ISA-L (the writer's codec until session 11) does not promise one stream for one
+input (intel/isa-l issue #140: its output may change with the CPU's code path; two default runs
+on this machine gave three normals files whose chunk deflated 1-2 bytes differently).  libdeflate's
+compressor is deterministic for a given libdeflate version (its author, ebiggers/libdeflate issue
+#400), and the version is the pinned ``deflate`` wheel's (constraints.txt), not the system's zlib.
+``tests/test_exr_writer.py`` writes one image in two processes and compares the bytes.  Reading stays with OpenImageIO
 (:func:`room_pipeline.io.images.read_exr`); the files are plain OpenEXR 2.0 single-part scanline files
 that every OpenEXR reader opens.
 
@@ -28,13 +36,13 @@ Codecs (the ones the render stage uses; others go to OpenImageIO)
     rounding into inf; NaN and inf kept), differenced along the line (mod 2^16 / 2^24), split into
     byte planes (most significant first), then deflate.  Lossless on HALF; FLOAT keeps 15 of 23
     mantissa bits (relative error <= 2^-16), exactly as OpenEXR's own encoder.
-    ``level``: ISA-L deflate level 0-3 (default :data:`DEFLATE_LEVEL`).
+    ``level``: libdeflate level 1-12 (default :data:`DEFLATE_LEVEL`).
 """
 from __future__ import annotations
 
 import os
 import struct
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -42,17 +50,19 @@ from .atomic import write_bytes
 
 #: codecs encoded here: name -> (OpenEXR compression id, scanlines per chunk)
 CODECS = {"none": (0, 1), "zips": (2, 1), "zip": (3, 16), "pxr24": (5, 16)}
-#: ISA-L deflate level (0-3): 1 gives 10-15 % more bytes than OpenEXR's level-4 deflate at a fraction of
-#: the CPU (benchmarks/results/write_throughput.md)
+#: libdeflate level (1-12) (benchmarks/results/write_throughput_deflate.md: CPU and bytes of each choice)
 DEFLATE_LEVEL = 1
+#: libdeflate's levels
+DEFLATE_LEVELS = range(1, 13)
 _MAGIC = 20000630
 _HALF, _FLOAT = 1, 2
 
 
-def _deflate(data: bytes, level: int) -> bytes:
-    from isal import isal_zlib
+def deflate_zlib(data: bytes, level: int = DEFLATE_LEVEL) -> bytes:
+    """A zlib stream (RFC 1950) of ``data`` by libdeflate at ``level``: the same bytes for the same input."""
+    import deflate
 
-    return isal_zlib.compress(data, level)
+    return deflate.zlib_compress(data, level)
 
 
 def _attr(name: str, type_name: str, value: bytes) -> bytes:
@@ -131,16 +141,20 @@ def _zip_prepare(raw: np.ndarray) -> bytes:
 
 
 def encode_exr(array: np.ndarray, channels: Sequence[str], half: bool, compression: str = "pxr24",
-               attributes: Mapping[str, Any] | None = None, level: int = DEFLATE_LEVEL) -> bytes:
+               attributes: Mapping[str, Any] | None = None, level: int = DEFLATE_LEVEL,
+               deflate: Callable[[bytes], bytes] | None = None) -> bytes:
     """The bytes of an OpenEXR file of an (H, W, C) array (channel k named ``channels[k]``).
 
     ``attributes``: name -> str / int / float (see :func:`encodable_attribute`), names as given.
     Values beyond the half range become inf when ``half`` (as NumPy's conversion and OpenEXR's do).
+    ``deflate``: another zlib-stream encoder of a chunk (``level`` then unused), for
+    ``benchmarks/write_throughput.py --deflate`` to compare codecs on the same chunks.
     """
     if compression not in CODECS:
         raise ValueError(f"compression must be one of {sorted(CODECS)}, got {compression!r}")
-    if not 0 <= int(level) <= 3:
-        raise ValueError(f"ISA-L deflate level must be 0..3, got {level}")
+    if deflate is None and int(level) not in DEFLATE_LEVELS:
+        raise ValueError(f"libdeflate level must be 1..12, got {level}")
+    encode = deflate or (lambda b: deflate_zlib(b, int(level)))
     a = np.asarray(array)
     if a.ndim == 2:
         a = a[..., None]
@@ -183,7 +197,7 @@ def encode_exr(array: np.ndarray, channels: Sequence[str], half: bool, compressi
             data = raw.tobytes()
         else:
             src = packed[y:y + lines].tobytes() if packed is not None else _zip_prepare(raw)
-            data = _deflate(src, level)
+            data = encode(src)
             if len(data) >= raw.size:                                # not smaller: stored raw, as OpenEXR does
                 data = raw.tobytes()
         chunks.append(struct.pack("<ii", y, len(data)) + data)

@@ -139,14 +139,14 @@ def _native_attributes(attributes: Mapping[str, Any] | None) -> dict[str, Any] |
 
 def write_exr(path: str | os.PathLike, array: np.ndarray, channels: Sequence[str] | None = None,
               attributes: Mapping[str, Any] | None = None, half: bool = False,
-              compression: str = "zip", writer: str = "isal") -> None:
+              compression: str = "zip", writer: str = "libdeflate") -> None:
     """Write an (H, W) or (H, W, C) array as a float32 (or half) OpenEXR, atomically.
 
     ``channels`` defaults to Y / U,V / R,G,B / R,G,B,A by channel count.
     Arrays that are not float32 are converted (values must be finite or the
     caller accepts inf/NaN in the file).  ``compression``: a key of
     :data:`EXR_COMPRESSIONS` (``dwaa``/``dwab`` may carry a level,
-    e.g. ``dwaa:45``).  ``writer``: ``isal`` -- :mod:`room_pipeline.io.exr` (NumPy + ISA-L deflate) for
+    e.g. ``dwaa:45``).  ``writer``: ``libdeflate`` -- :mod:`room_pipeline.io.exr` (NumPy + libdeflate) for
     ``none``/``zip``/``zips``/``pxr24`` with attributes it stores natively, OpenImageIO otherwise;
     ``openimageio`` -- always OpenImageIO.  Both store the same pixel values.
     """
@@ -159,10 +159,10 @@ def write_exr(path: str | os.PathLike, array: np.ndarray, channels: Sequence[str
     names = tuple(channels) if channels is not None else _DEFAULT_CHANNELS.get(c, tuple(f"C{i}" for i in range(c)))
     if len(names) != c:
         raise ValueError(f"{c} channels but {len(names)} channel names")
-    native = _native_attributes(attributes) if writer == "isal" else None
-    if writer not in ("isal", "openimageio"):
-        raise ValueError(f"EXR writer must be 'isal' or 'openimageio', got {writer!r}")
-    if writer == "isal" and compression in exr.CODECS and native is not None:
+    native = _native_attributes(attributes) if writer == "libdeflate" else None
+    if writer not in ("libdeflate", "openimageio"):
+        raise ValueError(f"EXR writer must be 'libdeflate' or 'openimageio', got {writer!r}")
+    if writer == "libdeflate" and compression in exr.CODECS and native is not None:
         exr.write_exr_scanline(path, a, names, half, compression, native)
         return
     pixel_type = oiio.HALF if half else oiio.FLOAT

@@ -26,12 +26,11 @@ Precision per modality (what :meth:`StorageParams.precision` writes into
                Both PXR24-compressed: lossless on half floats (PXR24 only rounds
                32-bit floats); smaller than ZIP at about the same encoding CPU,
                read faster (benchmarks/results/write_throughput.md).
-    writer     ``exr_writer: isal`` (default): :mod:`room_pipeline.io.exr`, NumPy
-               layout + ISA-L deflate level 1: the same pixel values as OpenImageIO's
-               writer, 4.7 / 13.9 / 8.4 instead of 18.2 / 30.8 / 17.9 CPU ms for a
-               depth / normals / flow frame, 15-18 % more bytes (137 / 613 / 275 vs
-               116 / 535 / 235 kB; write_throughput.md, 12 frames, loaded machine);
-               ``openimageio``: OpenImageIO / OpenEXR.
+    writer     ``exr_writer: libdeflate`` (default): :mod:`room_pipeline.io.exr`, NumPy
+               layout + libdeflate level 1 (the same bytes for the same frame; ISA-L,
+               the codec until session 11, did not promise it): the same pixel values
+               as OpenImageIO's writer at a fraction of its CPU, a few % more bytes
+               (write_throughput_deflate.md); ``openimageio``: OpenImageIO / OpenEXR.
     png        rgb, relative depth, segmentation, flow validity: lossless at every
                zlib ``png_level`` (default 1: about a third less CPU than 3 for
                11-18 % more bytes on rgb and relative depth); segmentation and flow
@@ -86,7 +85,7 @@ class StorageParams:
     flow_format: str = "exr"
     flow_dtype: str = "half"
     flow_compression: str = "pxr24"
-    exr_writer: str = "isal"
+    exr_writer: str = "libdeflate"
     png_level: int = 1
     point_clouds: str = "on_demand"
     point_cloud_stride: int = 1
@@ -109,8 +108,10 @@ class StorageParams:
             v = getattr(p, key)
             if not isinstance(v, str) or v.split(":")[0] not in EXR_COMPRESSIONS:
                 raise ConfigError(f"render.storage.{key} must be one of {sorted(EXR_COMPRESSIONS)}, got {v!r}")
-        if p.exr_writer not in ("isal", "openimageio"):
-            raise ConfigError(f"render.storage.exr_writer must be 'isal' or 'openimageio', got {p.exr_writer!r}")
+        if p.exr_writer not in ("libdeflate", "openimageio"):
+            raise ConfigError(f"render.storage.exr_writer must be 'libdeflate' or 'openimageio', got {p.exr_writer!r}"
+                              + (" ('isal' was replaced by 'libdeflate': deterministic bytes)"
+                                 if p.exr_writer == "isal" else ""))
         if p.flow_format not in ("exr", "flo"):
             raise ConfigError(f"render.storage.flow_format must be 'exr' or 'flo', got {p.flow_format!r}")
         if p.point_clouds not in ("on_demand", "ply"):
@@ -206,9 +207,9 @@ class StorageParams:
                         "error": ("<= 2^-12 (2.44e-4) per component (half float)" if self.normals_dtype == "half"
                                   else "float32 (relative 2^-24)")},
             "flow": flow,
-            "exr_writer": ("room_pipeline.io.exr: NumPy + ISA-L deflate (level 1) for none/zip/zips/pxr24, "
+            "exr_writer": ("room_pipeline.io.exr: NumPy + libdeflate (level 1) for none/zip/zips/pxr24, "
                            "OpenImageIO otherwise; the same pixel values as OpenImageIO's writer"
-                           if self.exr_writer == "isal" else "OpenImageIO (OpenEXR library)"),
+                           if self.exr_writer == "libdeflate" else "OpenImageIO (OpenEXR library)"),
             "png": {"files": "rgb, relative_depth (16-bit), segmentation (16-bit), flow validity (8-bit)",
                     "zlib_level": int(self.png_level),
                     "zlib_strategy": "default; run-length (Z_RLE) for segmentation and flow validity",
