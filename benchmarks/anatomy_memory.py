@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from room_pipeline.io.metrics import read_metrics_file
+from room_pipeline.paths import PatientPaths
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -48,8 +49,8 @@ def main() -> None:
         wall = time.perf_counter() - t0
         rows = []
         for st in stages:
-            name = f"{st}_sequence_000.json" if st == "trajectory" else f"{st}.json"   # per-sequence stage
-            m = read_metrics_file(Path(tmp) / "bench" / "metrics" / name)   # + its timing file
+            seq = "sequence_000" if st == "trajectory" else ""                      # per-sequence stage
+            m = read_metrics_file(PatientPaths(Path(tmp), "bench").stage_metrics(st, seq))   # + its timing file
             rows.append({"stage": st, "wall_s": m.get("wall_time_s"), "peak_rss_mb": m.get("peak_rss_mb")})
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     load = os.getloadavg()[0]

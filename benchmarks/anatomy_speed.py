@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from room_pipeline.io.metrics import read_metrics_file
+from room_pipeline.paths import PatientPaths
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -36,12 +37,12 @@ def run_case(out: Path, overrides: list[str]) -> dict:
     t0 = time.perf_counter()
     subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
-    pdir = out / "patient_000"
-    meta = json.loads((pdir / "ground_truth" / "phantom_metadata.json").read_text())
+    pp = PatientPaths(out, "patient_000")
+    meta = json.loads(pp.gt_metadata.read_text())
     row = {"shape": meta["shape"], "voxels": int(np.prod(meta["shape"])),
            "spacing_mm": [round(s * 1e3, 4) for s in meta["spacing_m"]], "total_wall_s_incl_startup": round(wall, 2)}
     for st in ALL:
-        m = read_metrics_file(pdir / "metrics" / f"{st}.json")   # + its timing file
+        m = read_metrics_file(pp.stage_metrics(st))   # + its timing file
         row[f"{st}_s"] = m["wall_time_s"]
         row[f"{st}_peak_mb"] = m["peak_rss_mb"]
     row["chain_s"] = round(sum(row[f"{st}_s"] for st in CHAIN), 3)

@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
 from room_pipeline.io.mesh import Mesh, read_obj  # noqa: E402
+from room_pipeline.paths import PatientPaths  # noqa: E402
 from room_pipeline.robot.kinematics import ScopeGeometry  # noqa: E402
 from room_pipeline.robot.sim_params import SimParams  # noqa: E402
 from room_pipeline.robot.simulation import simulate  # noqa: E402
@@ -38,11 +39,12 @@ from room_pipeline.robot.sequence_sim import open_entrance  # noqa: E402
 PYBULLET_ONE_SHAPE_OK = 131_708     # ../shared/DESIGN.md: passed; 200,914 failed
 #: --wall: the simulate stage's wall (collision_model.obj) or the finer render mesh (lung_model.obj), a larger
 #: surface of the same anatomy, to see the corridor where the whole mesh is large
-WALLS = {"collision": "collision_model", "render": "lung_model"}
+WALLS = {"collision": "collision_mesh", "render": "mesh"}       # PatientPaths properties
 
 
 def inputs(run_dir: Path, sequence: str, wall: str = "collision"):
-    doc = json.loads((run_dir / sequence / "metadata" / "trajectory.json").read_text())
+    pp = PatientPaths(run_dir.parent, run_dir.name)
+    doc = json.loads(pp.seq(sequence).trajectory.read_text())
     fr = doc["frames"]
     traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),
                                  poses=np.array([f["pose"] for f in fr]),
@@ -51,9 +53,9 @@ def inputs(run_dir: Path, sequence: str, wall: str = "collision"):
                                  # joints, as the simulate stage reads them (without them: pose IK on the camera poses)
                                  path_poses=np.array([f["path_pose"] for f in fr]) if "path_pose" in fr[0] else None,
                                  joints=np.array([f["q"] for f in fr]) if "q" in fr[0] else None)
-    graph = json.loads((run_dir / "anatomy" / "centreline_graph.json").read_text())
+    graph = json.loads(pp.centreline_graph.read_text())
     root_r = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
-    mesh, _ = open_entrance(read_obj(run_dir / "anatomy" / f"{WALLS[wall]}.obj"), traj.poses[0, :3, 3],
+    mesh, _ = open_entrance(read_obj(getattr(pp, WALLS[wall])), traj.poses[0, :3, 3],
                             traj.poses[0, :3, 2], root_r)
     return traj, mesh
 
@@ -118,7 +120,7 @@ def main() -> None:
         dview = angle_deg(res_c.tip_poses[:, :3, 2], res_f.tip_poses[:, :3, 2])
         dur = float(res_c.report["duration_s"])
         mc, mf = res_c.report["mesh"], res_f.report["mesh"]
-        row = {"run": f"{run_dir.name}/{seq}", "wall": WALLS[args.wall], "frames": int(len(traj.timestamps)), "duration_s": dur,
+        row = {"run": f"{run_dir.name}/{seq}", "wall": getattr(PatientPaths(run_dir.parent, run_dir.name), WALLS[args.wall]).stem, "frames": int(len(traj.timestamps)), "duration_s": dur,
                "mesh_faces": int(mesh.n_faces), "fits_one_pybullet_shape": bool(mesh.n_faces <= PYBULLET_ONE_SHAPE_OK),
                "corridor_mm": corr_p.collision_corridor_mm, "corridor_faces": mc.get("corridor_faces"),
                "corridor_bodies": mc["bodies"], "corridor_margin_mm": mc.get("corridor_margin_mm"),

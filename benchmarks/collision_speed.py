@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from collision_corridor import angle_deg, inputs  # noqa: E402
 from room_pipeline.io.mesh import read_obj  # noqa: E402
+from room_pipeline.paths import PatientPaths  # noqa: E402
 from room_pipeline.robot.sequence_sim import open_entrance  # noqa: E402
 from room_pipeline.anatomy.collision import collision_surface  # noqa: E402
 from room_pipeline.anatomy.decimate import two_sided_error  # noqa: E402
@@ -85,8 +86,9 @@ def main() -> None:
         run_dir, _, seq = spec.partition(":")
         run_dir, seq = Path(run_dir), seq or "sequence_000"
         traj, full = inputs(run_dir, seq, "render")       # the render mesh, entrance opened as the stage does
-        closed = read_obj(run_dir / "anatomy" / "lung_model.obj")
-        graph = json.loads((run_dir / "anatomy" / "centreline_graph.json").read_text())
+        pp = PatientPaths(run_dir.parent, run_dir.name)
+        closed = read_obj(pp.mesh)
+        graph = json.loads(pp.centreline_graph.read_text())
         root_r = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
 
         def opened(m: Mesh) -> Mesh:

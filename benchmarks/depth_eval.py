@@ -38,10 +38,12 @@ sys.path.insert(0, str(ROOT / "src"))
 
 from omegaconf import OmegaConf  # noqa: E402
 
+from room_pipeline.catalog import SequencePaths  # noqa: E402
 from room_pipeline.depth import metrics as dm  # noqa: E402
 from room_pipeline.depth.estimators import DepthParams, sequence_samples  # noqa: E402
 from room_pipeline.depth.physics import (LightModel, PhysicsParams, _log_distance, _rays, brdf_k,  # noqa: E402
                                          camera_cos, physics_depth, srgb8_to_linear)
+from room_pipeline.paths import PatientPaths  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 
@@ -53,11 +55,11 @@ def config(data: Path, others: list[str], **depth) -> OmegaConf:
             base[k] = {**base.get(k, {}), **v}
         else:
             base[k] = v
-    patients = {"patient_000": {"kind": "ct", "input": str(data / "patient_000" / "input" / "ct.nii.gz")}}
+    patients = {"patient_000": {"kind": "ct", "input": str(PatientPaths(data, "patient_000").phantom_ct)}}
     phantoms = {"patient_000": {"seed": 0}}
     for q in others:
         if q.startswith("patient_"):        # a phantom seed of the default run
-            patients[q] = {"kind": "ct", "input": str(data / q / "input" / "ct.nii.gz")}
+            patients[q] = {"kind": "ct", "input": str(PatientPaths(data, q).phantom_ct)}
             phantoms[q] = {"seed": int(q.split("_")[-1])}
         else:
             patients[q] = {"kind": "mask", "input": "../shared/data/airway_masks"}
@@ -67,7 +69,7 @@ def config(data: Path, others: list[str], **depth) -> OmegaConf:
 
 def physics_variants(seq: Path, stride: int, folder: str) -> list[dict]:
     samples = sequence_samples(seq, folder, stride=stride)
-    meta = json.loads((seq / "metadata" / "render.json").read_text())["renderer"]
+    meta = json.loads(SequencePaths(seq).render_json.read_text())["renderer"]
     model = LightModel.from_render_metadata(meta)
     cam = samples[0].camera
     frames = [(s.load_rgb(), s.load_gt()) for s in samples]
@@ -165,7 +167,6 @@ def saturation_blocks(seq: Path, errors_csv: Path, folder: str, block: int = 50)
 
 
 def run_eval(cfg, key: str) -> dict:
-    from room_pipeline.paths import PatientPaths
     from room_pipeline.stages import evaluate_depth
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -175,12 +176,11 @@ def run_eval(cfg, key: str) -> dict:
 
     patient, seq = key.split("/")
     paths = PatientPaths(Path(cfg.output_dir), patient)
-    ev = paths.evaluation(seq)          # <output_dir>/evaluation/<p>/<s>/
     # depth.json holds no timing: the rows' seconds per frame are in the stage's timing file
-    doc = read_with_timings(paths.eval(seq).depth, paths.timings(f"evaluate_depth_{seq}"))
+    doc = read_with_timings(paths.eval(seq).depth, paths.stage_timings("evaluate_depth", seq))
     print(f"evaluate_depth {key}: {doc['n_frames']} frames in {wall:.1f} s ({cpu:.1f} CPU s)", flush=True)
     return {"key": key, "frames": doc["n_frames"], "stride": int(cfg.depth.frame_stride), "wall_s": wall,
-            "cpu_s": cpu, "methods": doc["methods"], "errors_csv": str(ev / "depth_errors.csv")}
+            "cpu_s": cpu, "methods": doc["methods"], "errors_csv": str(paths.eval(seq).depth_errors)}
 
 
 def fmt(x, nd=3) -> str:
@@ -311,11 +311,11 @@ def main() -> int:
     t0 = time.perf_counter()
     train_depth.run(cfg, "patient_000")
     wall = time.perf_counter() - t0
-    doc = read_metrics_file(data / "patient_000" / "metrics" / "train_depth.json")   # + times_s
+    doc = read_metrics_file(PatientPaths(data, "patient_000").stage_metrics("train_depth"))   # + times_s
     res["train"] = {"wall_s": wall, **doc}
     import csv
 
-    with open(data / "patient_000" / "depth_model" / "training_log.csv") as fh:
+    with open(PatientPaths(data, "patient_000").depth_training_log) as fh:
         log = list(csv.DictReader(fh))
     res["loss_curve"] = {ph: [float(np.mean([float(r["loss"]) for r in log if r["phase"] == ph][i:i + 25]))
                               for i in range(0, sum(r["phase"] == ph for r in log), 25)]

@@ -50,10 +50,13 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
-DATA = ROOT / "data" / "output" / "patient_000"
 MODALITIES = ("rgb", "depth", "relative_depth", "normals", "flow", "segmentation")
 
-from room_pipeline.catalog import FOLDERS as _ALL_FOLDERS, SequencePaths  # noqa: E402
+from room_pipeline.catalog import FOLDERS as _ALL_FOLDERS, SequencePaths, frame_name  # noqa: E402
+from room_pipeline.paths import PatientPaths  # noqa: E402
+
+PATIENT = PatientPaths(ROOT / "data" / "output", "patient_000")
+DATA = PATIENT.root
 
 FOLDERS = {m: _ALL_FOLDERS[m] for m in MODALITIES}
 QUICK = "--quick" in sys.argv         # smoke mode: results go to executor_throughput_quick.* (the published ones stay)
@@ -93,8 +96,8 @@ def build_scene(n: int, exposure_ev: float | None):
     from room_pipeline.render.sequence import face_labels
 
     p = RenderParams()
-    mesh = read_obj(DATA / "anatomy" / "lung_model.obj")
-    graph = CentrelineGraph.from_dict(json.loads((DATA / "anatomy" / "centreline_graph.json").read_text()))
+    mesh = read_obj(PATIENT.mesh)
+    graph = CentrelineGraph.from_dict(json.loads(PATIENT.centreline_graph.read_text()))
     labels, _ = face_labels(mesh, graph)
     doc = json.loads(first_sequence().render_json.read_text())
     poses = resample_poses(np.array([f["pose"] for f in doc["frames"]]), n)
@@ -118,17 +121,17 @@ def render_and_write(state: dict, i: int) -> dict:
     """One frame, every default modality, written as the render stage writes it."""
     from room_pipeline.io.images import write_exr, write_flo, write_png8, write_png16
 
-    out, seq = state["r"].render(i, set(MODALITIES)), state["out"]
-    name, hit = f"frame_{i:04d}", out["hit"]
-    write_png8(seq / "rgb" / f"{name}.png", out["rgb"])
-    write_exr(seq / "depth" / f"{name}.exr", np.where(hit, out["depth"], 0).astype(np.float32), channels=("Y",),
+    out, seq = state["r"].render(i, set(MODALITIES)), SequencePaths(state["out"])
+    hit = out["hit"]
+    write_png8(seq.frame("rgb", i, ".png"), out["rgb"])
+    write_exr(seq.frame("depth", i, ".exr"), np.where(hit, out["depth"], 0).astype(np.float32), channels=("Y",),
               attributes={"units": "m", "quantity": "planar z depth, 0 = no hit"})
-    write_png16(seq / "relative_depth" / f"{name}.png", out["relative_depth"])
-    write_exr(seq / "surface_normals" / f"{name}.exr", out["normals"].astype(np.float32),
+    write_png16(seq.frame("relative_depth", i, ".png"), out["relative_depth"])
+    write_exr(seq.frame("normals", i, ".exr"), out["normals"].astype(np.float32),
               attributes={"frame": "OpenCV camera; R,G,B = x,y,z; unit; 0 = no hit"})
-    write_flo(seq / "optical_flow" / f"{name}.flo", out["flow"].astype(np.float32))
-    write_png8(seq / "optical_flow" / f"valid_{i:04d}.png", out["flow_valid"].astype(np.uint8) * 255)
-    write_png16(seq / "segmentation" / f"{name}.png", (out["segmentation"] + 1).astype(np.uint16))
+    write_flo(seq.frame("flow", i, ".flo"), out["flow"].astype(np.float32))
+    write_png8(seq.folder("flow") / frame_name(i, ".png", "valid"), out["flow_valid"].astype(np.uint8) * 255)
+    write_png16(seq.frame("segmentation", i, ".png"), (out["segmentation"] + 1).astype(np.uint16))
     return {"index": i, "hit_fraction": float(hit.mean())}
 
 
@@ -390,8 +393,8 @@ def main() -> None:
     doc = {"command": " ".join(["python", "benchmarks/executor_throughput.py", *sys.argv[1:]]),
            "started": started, "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
                                            "note": "shared with other jobs"},
-           "workload": {"mesh": str((DATA / "anatomy" / "lung_model.obj").relative_to(ROOT)),
-                        "poses": f"{first_sequence().root.name}/metadata/render.json resampled (linear + slerp)",
+           "workload": {"mesh": str(PATIENT.mesh.relative_to(ROOT)),
+                        "poses": f"{first_sequence().render_json.relative_to(DATA)} resampled (linear + slerp)",
                         "size": [600, 600], "modalities": list(MODALITIES)},
            "selection": f"best of {args.repeats} alternating runs per row; each run started once other users kept "
                         f"<= {args.max_busy} cores busy (3 s sample) or after {args.max_wait:.0f} s of waiting",

@@ -38,6 +38,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
 from room_pipeline.anatomy.centreline import CentrelineGraph  # noqa: E402
+from room_pipeline.catalog import find_sequences  # noqa: E402
+from room_pipeline.paths import PatientPaths  # noqa: E402
 from room_pipeline.evaluate.allocator import keep_freed_memory  # noqa: E402
 from room_pipeline.evaluate.pose_eval import PoseEvalParams, evaluate_methods, load_sequence  # noqa: E402
 from room_pipeline.evaluate.route_segments import label_frames  # noqa: E402
@@ -51,11 +53,7 @@ KEYS = ("RRA@5", "RTA@5", "AUC@30", "registration_rate", "ate_rmse_mm")
 
 
 def sequences(data: Path) -> list[tuple[str, str]]:
-    out = []
-    for render_json in sorted(data.glob("*/sequence_*/metadata/render.json")):
-        seq = render_json.parent.parent
-        out.append((seq.parent.name, seq.name))
-    return out
+    return [(s.root.parent.name, s.root.name) for s in find_sequences(data) if s.root.parent.parent == data]
 
 
 def evaluate(data: Path, patient: str, sequence: str, stride: int, methods: tuple, conf: dict) -> dict:
@@ -65,7 +63,7 @@ def evaluate(data: Path, patient: str, sequence: str, stride: int, methods: tupl
     c0 = time.process_time()
     images, K, gt, info = load_sequence(seq, p)
     load_cpu = time.process_time() - c0
-    graph = CentrelineGraph.from_dict(read_json(data / patient / "anatomy" / "centreline_graph.json"))
+    graph = CentrelineGraph.from_dict(read_json(PatientPaths(data, patient).centreline_graph))
     labels, _ = label_frames(gt[:, :3, 3], graph, p.bifurcation_radius_factor)
     out = {}
     for name in p.run_names():

@@ -18,7 +18,9 @@ import sys
 import tempfile
 from pathlib import Path
 
+from room_pipeline.catalog import find_sequences
 from room_pipeline.io.metrics import read_metrics_file
+from room_pipeline.paths import PatientPaths
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "airway_masks"
@@ -46,15 +48,15 @@ def run_one(name: str, mask: Path, start: Path | None) -> dict:
         row["exit"] = p.returncode
         errs = [ln for ln in p.stderr.splitlines() if ln.startswith("room: error")]
         row["error"] = " | ".join(errs) if errs else ("" if p.returncode == 0 else p.stderr.strip().splitlines()[-1:])
-        mdir = Path(tmp) / "real" / "metrics"
+        pp = PatientPaths(Path(tmp), "real")
         for st in STAGES:
-            f = mdir / f"{st}.json"
+            f = pp.stage_metrics(st)
             if f.exists():
                 m = read_metrics_file(f)   # + its timing file
                 row[f"{st}_peak_mb"], row[f"{st}_s"] = m.get("peak_rss_mb"), m.get("wall_time_s")
                 if st == "medial_axis":
                     row["branches"] = m.get("n_branches")
-        trajs = sorted((Path(tmp) / "real").glob("sequence_*/metadata/trajectory.json"))
+        trajs = [s.trajectory for s in find_sequences(pp.root, "trajectory")]
         row["sequences"] = []
         for t in trajs:
             d = json.loads(t.read_text())

@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+from room_pipeline.catalog import SequencePaths
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 
@@ -27,7 +29,7 @@ def main() -> None:
     ap.add_argument("sequence", help="a rendered sequence folder (<output_dir>/<patient>/<sequence>)")
     args = ap.parse_args()
     seq = Path(args.sequence)
-    meta = seq / "metadata" / "render.json"
+    meta = SequencePaths(seq).render_json
     if not meta.is_file():
         print(f"room: error: {seq}: not a rendered sequence (no metadata/render.json)", file=sys.stderr)
         sys.exit(2)

@@ -33,6 +33,7 @@ from room_pipeline.depth.baselines import TRAIN_MEAN_FILE, ConstantDepth, TrainM
 from room_pipeline.depth.cnn import CNNEstimator, checkpoint_path, simcol_samples  # noqa: E402
 from room_pipeline.depth.estimators import DepthParams, Frame, evaluate, sequence_samples  # noqa: E402
 from room_pipeline.depth.metrics import fit_to_shape  # noqa: E402
+from room_pipeline.paths import PatientPaths  # noqa: E402
 
 
 def corr(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> float:
@@ -55,7 +56,7 @@ def main() -> None:
     ests = {"cnn_before": CNNEstimator.load("cnn_before", checkpoint_path(data, args.patient, "pretrained"), p.cnn),
             "cnn_after": CNNEstimator.load("cnn_after", checkpoint_path(data, args.patient, "finetuned"), p.cnn),
             "constant": ConstantDepth("constant"), "tube_prior": TubePrior("tube_prior"),
-            "train_mean": TrainMean("train_mean", data / args.patient / "depth_model" / TRAIN_MEAN_FILE)}
+            "train_mean": TrainMean("train_mean", PatientPaths(data, args.patient).depth_model / TRAIN_MEAN_FILE)}
     t0, c0 = time.perf_counter(), time.process_time()
     rows = evaluate(ests, samples, p.valid_range_m, also_median=False, force_median=True)
     scores = {k: {m: r.summary()[m] for m in ("L1_mm", "AbsRel", "RMSE_mm", "delta1")} for k, r in rows.items()}

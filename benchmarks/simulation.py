@@ -66,6 +66,18 @@ from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY as G, fk  # noqa: E4
 from room_pipeline.robot.probes import contact_probe, settle_free  # noqa: E402
 from room_pipeline.robot.sim_params import SimParams  # noqa: E402
 from room_pipeline.robot.simulation import simulate  # noqa: E402
+from room_pipeline.catalog import SequencePaths  # noqa: E402
+from room_pipeline.paths import PatientPaths  # noqa: E402
+
+
+def _pp(patient_dir: Path) -> PatientPaths:
+    """The catalogue's paths of a patient folder (``<output_dir>/<patient>``)."""
+    return PatientPaths(patient_dir.parent, patient_dir.name)
+
+
+def _seq(patient_dir: Path) -> SequencePaths:
+    """The patient's default sequence (sequence_000), every benchmark here runs on it."""
+    return _pp(patient_dir).seq("sequence_000")
 
 MM = 1e-3
 
@@ -123,7 +135,7 @@ def pipeline_sequence(quick: bool) -> dict:
     from room_pipeline.robot.sequence_sim import open_entrance
 
     root = ROOT / "data" / "output" / "patient_000"
-    meta = root / "sequence_000" / "metadata" / "trajectory.json"
+    meta = _seq(root).trajectory
     if not meta.exists():
         return {"skipped": f"{meta} absent: run `dvc repro` first"}
     fr = json.loads(meta.read_text())["frames"]
@@ -132,14 +144,14 @@ def pipeline_sequence(quick: bool) -> dict:
                                  # a joint-space plan (trajectory.joint_plan): the shaft's path and the joints
                                  path_poses=np.array([f["path_pose"] for f in fr]) if "path_pose" in fr[0] else None,
                                  joints=np.array([f["q"] for f in fr]) if "q" in fr[0] else None)
-    graph = json.loads((root / "anatomy" / "centreline_graph.json").read_text())
+    graph = json.loads((_pp(root).centreline_graph).read_text())
     r0 = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
 
     def opened(m):
         return open_entrance(m, traj.poses[0, :3, 3], traj.poses[0, :3, 2], r0)[0]
 
-    render_mesh = read_obj(root / "anatomy" / "lung_model.obj")
-    mesh = opened(read_obj(root / "anatomy" / "collision_model.obj"))
+    render_mesh = read_obj(_pp(root).mesh)
+    mesh = opened(read_obj(_pp(root).collision_mesh))
 
     def one(wall=None, **kw) -> dict:
         prm = SimParams(**kw)
@@ -225,15 +237,15 @@ def _load_sequence(root: Path):
     from room_pipeline.io.mesh import read_obj
     from room_pipeline.robot.sequence_sim import open_entrance
 
-    fr = json.loads((root / "sequence_000" / "metadata" / "trajectory.json").read_text())["frames"]
+    fr = json.loads((_seq(root).trajectory).read_text())["frames"]
     traj = types.SimpleNamespace(timestamps=np.array([f["timestamp"] for f in fr]),
                                  poses=np.array([f["pose"] for f in fr]), arclength=np.array([f["arclength"] for f in fr]),
                                  # a joint-space plan (trajectory.joint_plan): the shaft's path and the joints
                                  path_poses=np.array([f["path_pose"] for f in fr]) if "path_pose" in fr[0] else None,
                                  joints=np.array([f["q"] for f in fr]) if "q" in fr[0] else None)
-    graph = json.loads((root / "anatomy" / "centreline_graph.json").read_text())
+    graph = json.loads((_pp(root).centreline_graph).read_text())
     r0 = float(next(b for b in graph["branches"] if b["parent"] == -1)["mean_radius"])
-    mesh = open_entrance(read_obj(root / "anatomy" / "collision_model.obj"), traj.poses[0, :3, 3],
+    mesh = open_entrance(read_obj(_pp(root).collision_mesh), traj.poses[0, :3, 3],
                          traj.poses[0, :3, 2], r0)[0]
     return traj, mesh
 
@@ -274,7 +286,7 @@ def physical_reference(roots: list[Path], quick: bool = False, reference: dict |
     opts = PHYS_OPTIONS if options is None else options
     out: dict = {"reference": ref_kw, "sequences": [], "loadavg_start": os.getloadavg()}
     for root in roots:
-        if not (root / "sequence_000" / "metadata" / "trajectory.json").exists():
+        if not (_seq(root).trajectory).exists():
             out["sequences"].append({"patient_dir": str(root), "skipped": "no sequence_000 trajectory"})
             continue
         traj, mesh = _load_sequence(root)
@@ -537,7 +549,7 @@ def reference_in_contact(dirs: list[str]) -> None:
     rows = []
     for d in dirs:
         for root in sorted(Path(d).glob("patient_*")):
-            if not (root / "sequence_000" / "metadata" / "trajectory.json").exists():
+            if not (_seq(root).trajectory).exists():
                 continue
             traj, mesh = _load_sequence(root)
             a = simulate(traj, mesh, SimParams(**{**PHYS_REF, "time_step_s": 5e-4, "max_step_halvings": 0}), G)
@@ -596,7 +608,7 @@ def contact_candidates(dirs: list[str]) -> None:
     rows: list[dict] = []
     for d in dirs:
         for root in sorted(Path(d).glob("patient_*")):
-            if not (root / "sequence_000" / "metadata" / "trajectory.json").exists():
+            if not (_seq(root).trajectory).exists():
                 continue
             seq = f"{root.name}/sequence_000"
             traj, mesh = _load_sequence(root)
@@ -710,7 +722,7 @@ def plan_clearance(dirs: list[str]) -> None:
     radius_mm = 0.5 * SimParams().scope_diameter_mm
     for d in dirs:
         for root in sorted(Path(d).glob("patient_*")):
-            tj = root / "sequence_000" / "metadata" / "trajectory.json"
+            tj = _seq(root).trajectory
             if not tj.exists():
                 continue
             traj, mesh = _load_sequence(root)
@@ -751,11 +763,11 @@ def plan_tracking(dirs: list[str]) -> None:
     rows = []
     for d in dirs:
         for root in sorted(Path(d).glob("patient_*")):
-            meta = root / "sequence_000" / "metadata"
-            if not (meta / "simulation.json").exists():
+            meta = _seq(root)
+            if not meta.simulation.exists():
                 continue
-            jp = json.loads((meta / "trajectory.json").read_text()).get("joint_plan")
-            r = json.loads((meta / "simulation.json").read_text())["report"]
+            jp = json.loads(meta.trajectory.read_text()).get("joint_plan")
+            r = json.loads(meta.simulation.read_text())["report"]
             w = (jp or {}).get("params", {}).get("wall_weight")
             rows.append({"sequence": f"{root.name}/sequence_000" + ("" if w is None else f" (wall_weight {w:g})"),
                          "dir": d, "joint_plan": jp,
@@ -808,11 +820,11 @@ def stop_at_wall(dirs: list[str]) -> None:
     radius_mm = 0.5 * SimParams().scope_diameter_mm
     for d in dirs:
         for root in sorted(Path(d).glob("patient_*")):
-            meta = root / "sequence_000" / "metadata"
-            if not (meta / "simulation.json").exists():
+            meta = _seq(root)
+            if not meta.simulation.exists():
                 continue
-            tj = json.loads((meta / "trajectory.json").read_text())
-            rep = json.loads((meta / "simulation.json").read_text())["report"]
+            tj = json.loads(meta.trajectory.read_text())
+            rep = json.loads(meta.simulation.read_text())["report"]
             traj, mesh = _load_sequence(root)
             runs, cpu = {}, {}
             for name, kw in (("defaults", {}), ("1 ms", PHYS_REF), ("0.5 ms", CONVERGED_REF)):
@@ -905,7 +917,7 @@ def motor_law(dirs: list[str]) -> None:
     rows = []
     for d in dirs:
         for root in sorted(Path(d).glob("patient_*")):
-            if not (root / "sequence_000" / "metadata" / "trajectory.json").exists():
+            if not (_seq(root).trajectory).exists():
                 continue
             traj, mesh = _load_sequence(root)
             mk = lambda kw: SimParams(**{**kw, "joint_integration": "motor", "max_step_halvings": 0})  # noqa: E731

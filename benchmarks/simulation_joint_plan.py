@@ -32,7 +32,9 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
+from room_pipeline.catalog import find_sequences  # noqa: E402
 from room_pipeline.io.volume import read_nifti_sdf  # noqa: E402
+from room_pipeline.paths import PatientPaths  # noqa: E402
 from room_pipeline.planning.joint_plan import JointPlanParams, plan_joints  # noqa: E402
 from room_pipeline.planning.trajectory import volume_sdf_fn  # noqa: E402
 from room_pipeline.robot.kinematics import DEFAULT_GEOMETRY as G  # noqa: E402
@@ -72,15 +74,17 @@ def main() -> None:
     base = config_params()
     rows = []
     for d in dirs:
-        for root in sorted(Path(d).glob("*/sequence_000/metadata/trajectory.json")):
-            patient = root.parents[2]
-            doc = json.loads(root.read_text())
+        for sp in find_sequences(d, "trajectory"):
+            patient = sp.root.parent
+            if sp.root.name != "sequence_000" or patient.parent != Path(d):
+                continue
+            doc = json.loads(sp.trajectory.read_text())
             fr = doc["frames"]
             if "path_pose" not in fr[0] or "q" not in fr[0]:
                 continue
             tr = {"targets": np.array([f["path_pose"] for f in fr]), "arclength": np.array([f["arclength"] for f in fr]),
                   "timestamps": np.array([f["timestamp"] for f in fr]), "q": np.array([f["q"] for f in fr])}
-            fn = volume_sdf_fn(read_nifti_sdf(patient / "anatomy" / "sdf.nii.gz"))
+            fn = volume_sdf_fn(read_nifti_sdf(PatientPaths(patient.parent, patient.name).sdf))
             route = Route(tr["targets"][:, :3, 3], tr["arclength"], tr["targets"][:, :3, :3])
             q, poses, rep, cpu, wall = solve(route, tr, fn, base)
             row = {"sequence": f"{patient.name}/sequence_000", "frames": len(fr), "duration_s": float(tr["timestamps"][-1]),

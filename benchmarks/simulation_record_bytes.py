@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+from room_pipeline.catalog import SequencePaths, find_sequences
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 
@@ -31,13 +33,13 @@ def folder_bytes(d: Path) -> int:
     return sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
 
 
-def measure(sim_json: Path) -> dict:
-    raw = sim_json.read_bytes()
+def measure(sp: SequencePaths) -> dict:
+    raw = sp.simulation.read_bytes()
     doc = json.loads(raw)
     frames = doc.get("frames") or []
     points = [len(f["backbone"]) for f in frames if "backbone" in f]
     without = {**doc, "frames": [{k: v for k, v in f.items() if k != "backbone"} for f in frames]}
-    seq = sim_json.parents[1]
+    seq = sp.root
     return {"sequence": f"{seq.parent.name}/{seq.name}", "frames": len(frames), "bytes": len(raw),
             "bytes_without_backbone": len(dumps(without)), "reserialised_identical": dumps(doc) == raw,
             "backbone_points_min": min(points) if points else 0, "backbone_points_max": max(points) if points else 0,
@@ -53,8 +55,7 @@ def main() -> None:
     if not root.is_dir():
         print(f"room: error: {root}: not a folder", file=sys.stderr)
         sys.exit(2)
-    found = sorted({*root.glob("metadata/simulation.json"), *root.glob("*/metadata/simulation.json"),
-                    *root.glob("*/*/metadata/simulation.json")})
+    found = find_sequences(root, "simulation")
     if not found:
         print(f"room: error: {root}: no <sequence>/metadata/simulation.json below it (run `room run --until "
               "simulate` first)", file=sys.stderr)

@@ -101,16 +101,17 @@ def load_inputs(args):
     from room_pipeline.io.mesh import read_obj
     from room_pipeline.render.sequence import face_labels
 
-    pat = Path(args.data) / "patient_000"
-    sim = pat / "sequence_000" / "metadata" / "simulation.json"
-    if (pat / "anatomy" / "lung_model.obj").is_file() and sim.is_file():
-        mesh = read_obj(pat / "anatomy" / "lung_model.obj")
-        labels, _ = face_labels(mesh, CentrelineGraph.from_dict(json.loads(
-            (pat / "anatomy" / "centreline_graph.json").read_text())))
-        doc = json.loads(sim.read_text())
-        poses = np.array([f["tip_pose"] for f in doc["frames"]])
-        ts = np.array([f["timestamp"] for f in doc["frames"]])
-        return mesh, labels, poses, ts, {"source": str(pat), "poses": "simulated (sequence_000)",
+    from room_pipeline.io.records import pose_track
+    from room_pipeline.paths import PatientPaths
+
+    pp = PatientPaths(Path(args.data), "patient_000")
+    sim = pp.seq("sequence_000").simulation
+    if pp.mesh.is_file() and sim.is_file():
+        mesh = read_obj(pp.mesh)
+        labels, _ = face_labels(mesh, CentrelineGraph.from_dict(json.loads(pp.centreline_graph.read_text())))
+        track = pose_track(sim)
+        poses, ts = track.poses, track.timestamps
+        return mesh, labels, poses, ts, {"source": str(pp.root), "poses": "simulated (sequence_000)",
                                          "faces": int(mesh.n_faces), "frames": len(poses)}
     from raycast_renderer import make_inputs
 

@@ -309,6 +309,57 @@ def test_stage_module_spells_no_dataset_or_metrics_name(module):
                 f"stages/{module}: write_metrics names stage {ast.unparse(stage)}, not '{path.stem}'"
 
 
+#: benchmark scripts that other engineers edit in session 11: routed through the catalogue by the lead after merging
+#: (each still spells layout names; the test below fails once one is routed, so the list cannot go stale)
+ROUTED_AFTER_MERGE = {"cycles_quality.py", "cycles_reference.py", "real_tree_robustness.py", "realism.py",
+                      "realism_psnr_split.py", "realism_refit.py", "realism_speed.py"}
+
+
+def _path_like_names(path: Path, names: set[str]) -> list[str]:
+    """Layout names in the path-like string literals of ``path``: a literal that is a layout name, or has no
+    whitespace and a ``/``-separated part that is one (``"*/metadata/render.json"``).  Prose (literals with
+    whitespace: printed Markdown, help texts), docstrings, dict keys and subscripts are apart, and so are the
+    results file names a script writes (``RESULTS / "trajectory.json"``, ``res / "simulation.md"``)."""
+    import ast
+
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    skip = {id(n.body[0].value) for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef)) and ast.get_docstring(n) is not None}
+    skip |= {id(k) for n in ast.walk(tree) if isinstance(n, ast.Dict) for k in n.keys if k is not None}
+    skip |= {id(n.slice) for n in ast.walk(tree) if isinstance(n, ast.Subscript)}
+    skip |= {id(n.right) for n in ast.walk(tree) if isinstance(n, ast.BinOp) and isinstance(n.op, ast.Div)
+             and ast.unparse(n.left).split(".")[-1] in ("RESULTS", "res", "results", "out_dir")}
+    found = set()
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in skip:
+            s = n.value.strip()
+            if s in names:
+                found.add(s)
+            elif s and not any(c.isspace() for c in s):
+                found |= {part for part in s.split("/") if part in names}
+    return sorted(found)
+
+
+@pytest.mark.parametrize("script", sorted(f"{d}/{p.name}" for d in ("benchmarks", "scripts")
+                                          for p in (REPO / d).glob("*.py")))
+def test_benchmarks_and_scripts_find_dataset_files_through_the_catalogue(script):
+    """Benchmarks and scripts build every dataset path through room_pipeline.catalog / paths: no layout name is
+    a path-like literal in them (they rotted when the layout moved: issue #14)."""
+    found = _path_like_names(REPO / script, _layout_names())
+    if Path(script).name in ROUTED_AFTER_MERGE:
+        assert found, f"{script} no longer spells layout names: drop it from ROUTED_AFTER_MERGE"
+        pytest.skip(f"{script}: edited by another engineer this round; routed after merging ({found})")
+    assert not found, f"{script} spells dataset names (take them from room_pipeline.catalog / paths): {found}"
+
+
+def test_path_like_check_sees_a_spelled_name(tmp_path):
+    """The check above finds a layout name joined by hand, in a glob pattern, and ignores prose and results."""
+    f = tmp_path / "x.py"
+    f.write_text('a = run / "anatomy" / "lung_model.obj"\nb = d.glob("*/sequence_*/metadata/render.json")\n'
+                 'print("the mesh stage makes collision_model.obj")\nRESULTS / "trajectory.json"\n', encoding="utf-8")
+    assert _path_like_names(f, _layout_names()) == ["anatomy", "lung_model.obj", "metadata", "render.json"]
+
+
 def test_stage_name_check_sees_a_spelled_metrics_name(tmp_path):
     """The check above finds a metrics file name written by hand."""
     f = tmp_path / "x.py"
@@ -346,8 +397,8 @@ def test_compare_default_runs_bad_input_one_line_exit_2(tmp_path, args, message)
 
 
 def test_compare_runs_tells_a_deflate_stream_from_a_pixel_change(tmp_path):
-    """scripts/compare_runs.py classifies an EXR pair: same header and pixels deflated to other bytes (ISA-L
-    level 0 against 1 here) -> 'encoding'; one changed pixel -> 'different'; a file that is no EXR -> 'different'."""
+    """scripts/compare_runs.py classifies an EXR pair: same header and pixels deflated to other bytes
+    (libdeflate level 6 against 1 here) -> 'encoding'; one changed pixel -> 'different'; a file that is no EXR -> 'different'."""
     import numpy as np
 
     import compare_runs
@@ -360,7 +411,7 @@ def test_compare_runs_tells_a_deflate_stream_from_a_pixel_change(tmp_path):
     sides = {"a": {"same.exr": encode_exr(img, ("B", "G", "R"), True, "pxr24", level=1),
                    "changed.exr": encode_exr(img, ("B", "G", "R"), True, "pxr24", level=1),
                    "junk.exr": b"plain bytes"},
-             "b": {"same.exr": encode_exr(img, ("B", "G", "R"), True, "pxr24", level=0),
+             "b": {"same.exr": encode_exr(img, ("B", "G", "R"), True, "pxr24", level=6),
                    "changed.exr": encode_exr(changed, ("B", "G", "R"), True, "pxr24", level=1),
                    "junk.exr": b"other bytes"}}
     assert sides["a"]["same.exr"] != sides["b"]["same.exr"]

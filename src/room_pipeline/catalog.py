@@ -10,6 +10,7 @@ and the benchmarks read the names from here::
         rgb/ depth/ relative_depth/ surface_normals/ optical_flow/ point_clouds/ segmentation/   (render)
         rgb_noisy/                                                                             (noise)
         calibration/camera_params.json                                                         (render)
+        point_clouds/point_clouds.json                                                         (render)
         segmentation/legend.json                                                               (render)
         metadata/trajectory.json  timestamps.json  trajectory_tum.txt                          (trajectory)
         metadata/robot_config.json  simulation.json  simulated_tum.txt                         (simulate)
@@ -49,6 +50,8 @@ METADATA = "metadata"
 CALIBRATION = "calibration"
 CAMERA_JSON = "camera_params.json"
 LEGEND_JSON = "legend.json"
+#: inside ``point_clouds/``: how the point clouds are stored (PLY files, or built on demand from depth)
+POINT_CLOUD_JSON = "point_clouds.json"
 TRAJECTORY_JSON = "trajectory.json"
 TIMESTAMPS_JSON = "timestamps.json"
 TRAJECTORY_TUM = "trajectory_tum.txt"
@@ -131,6 +134,10 @@ class SequencePaths:
     @property
     def legend(self) -> Path:
         return self.folder("segmentation") / LEGEND_JSON
+
+    @property
+    def point_cloud_json(self) -> Path:
+        return self.folder("point_cloud") / POINT_CLOUD_JSON
 
     @property
     def trajectory(self) -> Path:

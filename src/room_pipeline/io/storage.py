@@ -63,6 +63,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from ..catalog import POINT_CLOUD_JSON  # noqa: F401  (re-exported: the dataset reader's name for it)
 from ..config.params import params_from_dict
 from ..errors import ConfigError
 from .images import EXR_COMPRESSIONS, write_exr, write_flo, write_png8, write_png16
@@ -70,7 +71,6 @@ from .images import EXR_COMPRESSIONS, write_exr, write_flo, write_png8, write_pn
 #: 2^-17 m ~ 7.6 um: depth rounding step of the default (error <= half of it)
 DEFAULT_DEPTH_QUANTUM_M = 2.0 ** -17
 HALF_REL_ERROR = 2.0 ** -11           # round-to-nearest half float: relative error bound
-POINT_CLOUD_JSON = "point_clouds.json"
 
 
 @dataclasses.dataclass(frozen=True)

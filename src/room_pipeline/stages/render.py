@@ -16,7 +16,6 @@ from ..config.compose import section
 from ..execution import ensure_writable, remove_stale_temp_files
 from ..io.atomic import write_json
 from ..io.mesh import read_obj
-from ..io.storage import POINT_CLOUD_JSON
 from ..render.params import RenderParams
 from ..render.sequence import execution_params, load_poses, render_sequence, select_frames
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics, write_sequence_record
@@ -47,7 +46,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     docs = out.documents(metadata("render", patient, cfg, ("render",), sequence=sequence))
     if "legend" in docs:
         write_json(sp.legend, docs["legend"])
-    write_json(sp.folder("point_cloud") / POINT_CLOUD_JSON, docs["point_clouds"])
+    write_json(sp.point_cloud_json, docs["point_clouds"])
     write_json(sp.camera, docs["camera"])
     write_json(sp.render_json, docs["render"])
     metrics = out.metrics(timer.wall_s)
