@@ -194,3 +194,19 @@ def test_every_composed_config_reads_to_the_same_params_as_before(overrides):
     assert SegmentParams.from_dict(seg) == _old_segment_params(seg)
     new, old = TrajectoryParams.from_dict(traj), _old_trajectory_params(section(cfg, "trajectory"))
     assert new == old and json.dumps(new.to_dict()) == json.dumps(old.to_dict())
+
+
+def test_phantom_entry_reads_through_the_one_reader():
+    """phantoms.<patient> (the seed the phantom stage and Table III read) goes through params_from_dict: a bad
+    value or key is one ConfigError line naming it; a patient that is no phantom is refused."""
+    from omegaconf import OmegaConf
+
+    from room_pipeline.config.compose import PhantomEntry, phantom_entry
+    from room_pipeline.errors import ConfigError
+
+    cfg = OmegaConf.create({"phantoms": {"a": {"seed": 3}, "b": None, "c": {"seed": "x"}, "d": {"sed": 1}}})
+    assert phantom_entry(cfg, "a") == PhantomEntry(seed=3) and phantom_entry(cfg, "b").seed == 0
+    for patient, message in (("c", r"phantoms\.c\.seed: expected int"), ("d", r"unknown key 'phantoms\.d\.sed'"),
+                             ("e", "not a phantom patient")):
+        with pytest.raises(ConfigError, match=message):
+            phantom_entry(cfg, patient)

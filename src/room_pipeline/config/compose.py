@@ -7,13 +7,15 @@ bytes and a test can tell when ``params.yaml`` is stale.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
 from ..errors import ConfigError, InputError
+from .params import params_from_dict
 
 CONFIG_NAME = "config"
 
@@ -83,6 +85,27 @@ def section(cfg: DictConfig, key: str) -> dict:
     if key not in cfg:
         raise ConfigError(f"config has no section '{key}'")
     return OmegaConf.to_container(cfg[key], resolve=True)  # type: ignore[return-value]
+
+
+@dataclasses.dataclass(frozen=True)
+class PhantomEntry:
+    """``phantoms.<patient>``: a phantom patient's entry (conf/patients/*.yaml); ``seed``: its random tree's seed."""
+
+    seed: int = 0
+
+
+def phantom_entry(cfg: Mapping[str, Any], patient: str) -> PhantomEntry:
+    """The ``phantoms.<patient>`` entry read by :func:`~room_pipeline.config.params.params_from_dict` (a bad key
+    or value is one :class:`ConfigError` line); a patient that is no phantom is one too."""
+    phantoms = cfg.get("phantoms") or {}
+    if patient not in phantoms:
+        raise ConfigError(f"'{patient}' is not a phantom patient (phantoms: {', '.join(phantoms) or 'none'})")
+    entry = phantoms[patient]
+    if isinstance(entry, DictConfig):
+        entry = OmegaConf.to_container(entry, resolve=True)
+    if entry is not None and not isinstance(entry, Mapping):
+        raise ConfigError(f"phantoms.{patient} must be a mapping (seed: N), got {entry!r}")
+    return params_from_dict(PhantomEntry, entry, f"phantoms.{patient}")
 
 
 def patient_entry(cfg: DictConfig, patient: str) -> dict:

@@ -19,7 +19,9 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from ..catalog import SPEED_ACCURACY_CSV, TABLES_METRICS_JSON
+from ..config.compose import phantom_entry
 from ..config.params import params_from_dict
+from ..depth.cnn import CNNParams, TrainParams
 from ..errors import ConfigError, InputError
 from ..io.jsondoc import finite, round_floats
 from ..io.metrics import read_with_timings
@@ -62,7 +64,7 @@ def eval_patients(cfg: Mapping[str, Any], patient: str, chosen) -> list[tuple[st
 
     def describe(q: str) -> str:
         if q in phantoms:
-            return f"phantom seed {phantoms[q].get('seed', 0)}"
+            return f"phantom seed {phantom_entry(cfg, q).seed}"
         kind = (patients.get(q) or {}).get("kind", "?")
         return "real airway mask (shared data)" if kind == "mask" else f"patient of kind {kind}"
 
@@ -77,8 +79,8 @@ def other_anatomy_records(cfg: Mapping[str, Any], depth_by_patient: Mapping[str,
     """Fine-tuning records (``{"datasets": {"other_anatomy": ...}}``, one per other patient) built from the
     `evaluate_depth` docs of the patients other than the training patient (module docstring)."""
     dep = cfg.get("depth") or {}
-    train_patient = str((dep.get("cnn") or {}).get("checkpoint_patient", "patient_000"))
-    chosen = (dep.get("train") or {}).get("eval_patients")
+    train_patient = params_from_dict(CNNParams, dep.get("cnn"), "depth.cnn").checkpoint_patient
+    chosen = TrainParams.from_dict(dep.get("train")).eval_patients
     others = eval_patients(cfg, train_patient, None if chosen is None else list(chosen))
     keys = [k for k, _, _ in FINETUNE_COLUMNS]
     if not others:

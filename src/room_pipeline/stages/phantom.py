@@ -5,8 +5,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from ..anatomy.phantom import PhantomParams, make_phantom
-from ..config.compose import section
-from ..errors import ConfigError
+from ..config.compose import phantom_entry, section
 from ..io.atomic import write_json
 from ..io.volume import write_nifti
 from .common import StageTimer, metadata, patient_paths, write_metrics
@@ -21,10 +20,7 @@ def outputs(cfg: DictConfig, patient: str) -> list:
 
 
 def run(cfg: DictConfig, patient: str) -> dict:
-    phantoms = cfg.get("phantoms") or {}
-    if patient not in phantoms:
-        raise ConfigError(f"'{patient}' is not a phantom patient (phantoms: {', '.join(phantoms) or 'none'})")
-    seed = int(phantoms[patient].get("seed", 0))
+    seed = phantom_entry(cfg, patient).seed
     params = PhantomParams.from_dict(section(cfg, "phantom"))
     paths = patient_paths(cfg, patient)
     with StageTimer() as timer:
