@@ -141,7 +141,7 @@ def test_benchmark_smoke(script, tmp_path):
             pytest.skip(why)
     root = _scratch(tmp_path)
     # bpy (loaded first by conftest) sets the C locale in this process: decode the output as UTF-8 explicitly
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), *filter(None, [os.environ.get("PYTHONPATH")])])}
     res = subprocess.run([sys.executable, str(root / "benchmarks" / script), *args], cwd=root, env=env,
                          capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=1800)
     assert res.returncode == 0, f"{script} {' '.join(args)}: exit {res.returncode}\n{res.stderr[-3000:]}"
