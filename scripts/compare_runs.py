@@ -3,6 +3,12 @@
 
     python scripts/compare_runs.py list RUN [--out MANIFEST.json]
     python scripts/compare_runs.py compare RUN_A RUN_B [--name NAME] [--label-a A] [--label-b B]
+    python scripts/compare_runs.py frames SEQ_A SEQ_B [--name NAME] [--label-a A] [--label-b B]
+
+``frames`` (the cheaper check of a change to how frames are written): SEQ_B is one sequence folder re-rendered
+(``room stage render``, e.g. with ``render.max_frames=N``) and every frame file of its render folders is
+classified as below against the same path in the sequence folder SEQ_A of a finished run; SEQ_A's other frames
+are not compared.
 
 ``RUN`` is the folder a run was made from: its ``data/output`` (the dataset, ``output_dir``) and
 ``reports/`` (the tables stage's ``evaluate.tables.output_dir``) are listed, every regular file with its
@@ -227,6 +233,27 @@ def compare(run_a: Path, run_b: Path) -> dict:
                                      if p not in same]}
 
 
+def compare_frames(seq_a: Path, seq_b: Path) -> dict:
+    """:func:`compare` for the frame files of SEQ_B's render folders against the same paths in SEQ_A."""
+    from room_pipeline.catalog import SequencePaths
+
+    rels = sorted(str(f.relative_to(seq_b)) for d in SequencePaths(seq_b).render_folders() if d.is_dir()
+                  for f in d.rglob("*") if f.is_file())
+    identical, encoding, different = [], {}, {}
+    for rel in rels:
+        a, b = seq_a / rel, seq_b / rel
+        if not a.is_file():
+            different[rel] = ["only in the second run"]
+        elif sha256_file(a) == sha256_file(b):
+            identical.append(rel)
+        else:
+            kind, fields = classify(seq_a, seq_b, rel)
+            (encoding if kind == "encoding" else different)[rel] = fields
+    return {"files": len(rels), "identical": len(identical), "timing_only": {}, "encoding_only": encoding,
+            "different": different, "bytes_a": sum((seq_a / r).stat().st_size for r in rels if (seq_a / r).is_file()),
+            "bytes_b": sum((seq_b / r).stat().st_size for r in rels), "run_records": {}}
+
+
 def report_md(res: dict, label_a: str, label_b: str, command: str) -> str:
     n_t, n_d = len(res["timing_only"]), len(res["different"])
     L = [f"# Byte-identity of two runs: {label_a} vs {label_b}", "", f"Command: `{command}`", "",
@@ -277,6 +304,12 @@ def main(argv: list[str] | None = None) -> int:
     cp.add_argument("--name", default="run_identity")
     cp.add_argument("--label-a", default="A")
     cp.add_argument("--label-b", default="B")
+    fr = sub.add_parser("frames", help="compare a re-rendered sequence's frame files with a finished run's")
+    fr.add_argument("run_a", type=Path, help="the finished run's sequence folder")
+    fr.add_argument("run_b", type=Path, help="the re-rendered sequence folder")
+    fr.add_argument("--name", default="frames_identity")
+    fr.add_argument("--label-a", default="A")
+    fr.add_argument("--label-b", default="B")
     args = ap.parse_args(argv)
     if args.cmd == "list":
         files = list_run(args.run)
@@ -286,12 +319,21 @@ def main(argv: list[str] | None = None) -> int:
             for f in files:
                 print(f"{f['sha256']}  {f['size']:>10}  {f['path']}")
         return 0
-    for r in (args.run_a, args.run_b):
-        if not (r / PARTS[0]).is_dir():
-            print(f"room: error: {r}: no {PARTS[0]} folder (not a run folder)", file=sys.stderr)
-            return 2
-    res = compare(args.run_a, args.run_b)
-    command = f"python scripts/compare_runs.py compare {args.run_a} {args.run_b} --name {args.name} " \
+    if args.cmd == "frames":
+        from room_pipeline.catalog import SequencePaths
+
+        for r in (args.run_a, args.run_b):
+            if not SequencePaths(r).is_rendered():
+                print(f"room: error: {r}: not a rendered sequence folder", file=sys.stderr)
+                return 2
+        res = compare_frames(args.run_a, args.run_b)
+    else:
+        for r in (args.run_a, args.run_b):
+            if not (r / PARTS[0]).is_dir():
+                print(f"room: error: {r}: no {PARTS[0]} folder (not a run folder)", file=sys.stderr)
+                return 2
+        res = compare(args.run_a, args.run_b)
+    command = f"python scripts/compare_runs.py {args.cmd} {args.run_a} {args.run_b} --name {args.name} " \
               f"--label-a {args.label_a} --label-b {args.label_b}"
     md = report_md(res, args.label_a, args.label_b, command)
     out = ROOT / "benchmarks" / "results"

@@ -423,3 +423,13 @@ def test_compare_runs_tells_a_deflate_stream_from_a_pixel_change(tmp_path):
     assert kind == "encoding" and "same header and inflated pixel data" in why[0]
     assert compare_runs.classify(tmp_path / "a", tmp_path / "b", "changed.exr")[0] == "different"
     assert compare_runs.classify(tmp_path / "a", tmp_path / "b", "junk.exr")[0] == "different"
+
+
+def test_compare_runs_frames_bad_input_one_line_exit_2(tmp_path):
+    """scripts/compare_runs.py frames (a re-rendered sequence against a finished run's) refuses a folder that is
+    no rendered sequence: one line on stderr, exit 2."""
+    r = subprocess.run([sys.executable, str(REPO / "scripts" / "compare_runs.py"), "frames", str(tmp_path),
+                        str(tmp_path / "nope"), "--name", "never_written"], capture_output=True, text=True,
+                       encoding="utf-8")
+    assert r.returncode == 2 and "not a rendered sequence" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (REPO / "benchmarks" / "results" / "never_written.md").exists()

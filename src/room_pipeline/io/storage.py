@@ -27,10 +27,11 @@ Precision per modality (what :meth:`StorageParams.precision` writes into
                32-bit floats); smaller than ZIP at about the same encoding CPU,
                read faster (benchmarks/results/write_throughput.md).
     writer     ``exr_writer: libdeflate`` (default): :mod:`room_pipeline.io.exr`, NumPy
-               layout + libdeflate level 1 (the same bytes for the same frame; ISA-L,
+               layout + libdeflate level 4 (the same bytes for the same frame; ISA-L,
                the codec until session 11, did not promise it): the same pixel values
-               as OpenImageIO's writer at a fraction of its CPU, a few % more bytes
-               (write_throughput_deflate.md); ``openimageio``: OpenImageIO / OpenEXR.
+               as OpenImageIO's writer, 9.8 CPU ms and 303 kB a file against 15.4 ms and
+               311 kB for zlib at OpenEXR's level 4 (write_throughput_deflate.md, 24 real
+               frames); ``openimageio``: OpenImageIO / OpenEXR.
     png        rgb, relative depth, segmentation, flow validity: lossless at every
                zlib ``png_level`` (default 1: about a third less CPU than 3 for
                11-18 % more bytes on rgb and relative depth); segmentation and flow
@@ -207,7 +208,7 @@ class StorageParams:
                         "error": ("<= 2^-12 (2.44e-4) per component (half float)" if self.normals_dtype == "half"
                                   else "float32 (relative 2^-24)")},
             "flow": flow,
-            "exr_writer": ("room_pipeline.io.exr: NumPy + libdeflate (level 1) for none/zip/zips/pxr24, "
+            "exr_writer": ("room_pipeline.io.exr: NumPy + libdeflate (level 4) for none/zip/zips/pxr24, "
                            "OpenImageIO otherwise; the same pixel values as OpenImageIO's writer"
                            if self.exr_writer == "libdeflate" else "OpenImageIO (OpenEXR library)"),
             "png": {"files": "rgb, relative_depth (16-bit), segmentation (16-bit), flow validity (8-bit)",
