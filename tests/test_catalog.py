@@ -121,3 +121,20 @@ def test_sequence_record_hashes_what_it_names(tmp_path):
     s.frame("rgb", 0, ".png").write_bytes(b"other")
     write_sequence_record(pp, "sequence_000", "render", files)
     assert json.loads(rec.read_text())["rgb"] != doc["rgb"]
+
+
+def test_find_sequences_below_a_root_a_patient_or_a_sequence(tmp_path):
+    """catalog.find_sequences: the sequences whose record file exists, from a dataset root, a patient folder or
+    the sequence folder itself, sorted; an unknown record name is a ConfigError."""
+    pp = PatientPaths(tmp_path, "p")
+    done, planned = pp.seq("sequence_000"), pp.seq("sequence_001")
+    for s in (done, planned):
+        s.metadata.mkdir(parents=True)
+        s.trajectory.write_text("{}")
+    done.render_json.write_text("{}")
+    assert catalog.find_sequences(tmp_path) == [done]
+    assert catalog.find_sequences(tmp_path, "trajectory") == [done, planned]
+    assert catalog.find_sequences(pp.root, "trajectory") == [done, planned]
+    assert catalog.find_sequences(done.root) == [done] and catalog.find_sequences(tmp_path / "absent") == []
+    with pytest.raises(ConfigError, match="unknown sequence record"):
+        catalog.find_sequences(tmp_path, "frames")
