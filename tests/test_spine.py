@@ -433,3 +433,27 @@ def test_compare_runs_frames_bad_input_one_line_exit_2(tmp_path):
                        encoding="utf-8")
     assert r.returncode == 2 and "not a rendered sequence" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (REPO / "benchmarks" / "results" / "never_written.md").exists()
+
+
+def test_compare_test_durations_counts_only_tests_passed_in_both(tmp_path):
+    """scripts/compare_test_durations.py: the suite's speed from two JUnit files, over the tests passed in both;
+    a file that is no JUnit XML, or no test in common, is one line and exit 2."""
+    def junit(path, cases):
+        body = "".join(f'<testcase classname="tests.t" name="{n}" time="{s}">{extra}</testcase>'
+                       for n, s, extra in cases)
+        path.write_text(f'<?xml version="1.0"?><testsuites><testsuite>{body}</testsuite></testsuites>',
+                        encoding="utf-8")
+        return path
+
+    a = junit(tmp_path / "a.xml", [("x", 1.0, ""), ("y", 2.0, ""), ("gone", 5.0, ""), ("f", 1.0, "<failure/>")])
+    b = junit(tmp_path / "b.xml", [("x", 1.5, ""), ("y", 2.0, ""), ("new", 9.0, ""), ("f", 1.0, "")])
+    script = str(REPO / "scripts" / "compare_test_durations.py")
+    r = subprocess.run([sys.executable, script, str(a), str(b)], capture_output=True, text=True, encoding="utf-8")
+    assert r.returncode == 0, r.stderr
+    assert "tests passed in both: 2" in r.stdout and "A 3.0, B 3.5, B / A 1.167" in r.stdout
+    assert "median per-test B / A over 2 tests" in r.stdout and "1.250" in r.stdout
+    (tmp_path / "junk.xml").write_text("not xml", encoding="utf-8")
+    for args in ([str(tmp_path / "junk.xml"), str(b)],
+                 [str(junit(tmp_path / "c.xml", [("z", 1.0, "")])), str(b)]):
+        r = subprocess.run([sys.executable, script, *args], capture_output=True, text=True, encoding="utf-8")
+        assert r.returncode == 2 and r.stderr.startswith("room: error:") and len(r.stderr.strip().splitlines()) == 1

@@ -1,0 +1,70 @@
+#!/usr/bin/env python3
+"""Is the suite slower at one commit than at another?  Per-test durations of two pytest JUnit XML files.
+
+    python scripts/compare_test_durations.py A.xml B.xml [--min-s 0.05]
+
+Make the two files on one machine at similar load, each from a fresh clone of its commit, e.g.
+``CI=true pytest -m "not slow" --junitxml=A.xml`` at the older commit and ``--junitxml=B.xml`` at the newer,
+best run twice in the order A B B A so a change of load shows as disagreement between the pairs.  Only the
+tests present (same node id) and passed in both files are compared, so tests added or removed between the
+commits do not count as speed.  Printed: the number of common tests, their summed seconds in A and B and
+the ratio B / A, the median of the per-test ratios (over tests of at least ``--min-s`` seconds in A), and
+the ten tests that slowed most.  Durations are pytest's wall times (setup + call + teardown of each test,
+as JUnit records them), not CPU times: a loaded machine inflates both runs.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+
+def durations(path: Path) -> dict[str, float]:
+    """node id (``classname::name``) -> seconds of each passed test case in a JUnit XML file."""
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError) as exc:
+        print(f"room: error: {path}: not a readable JUnit XML file ({exc})", file=sys.stderr)
+        raise SystemExit(2) from None
+    out = {}
+    for case in root.iter("testcase"):
+        if any(case.find(tag) is not None for tag in ("failure", "error", "skipped")):
+            continue
+        out[f"{case.get('classname', '')}::{case.get('name', '')}"] = float(case.get("time") or 0.0)
+    return out
+
+
+def compare(a: dict[str, float], b: dict[str, float], min_s: float) -> dict:
+    common = sorted(set(a) & set(b))
+    sum_a, sum_b = sum(a[t] for t in common), sum(b[t] for t in common)
+    ratios = [b[t] / a[t] for t in common if a[t] >= min_s]
+    slowed = sorted(common, key=lambda t: b[t] - a[t], reverse=True)[:10]
+    return {"common": len(common), "only_a": len(set(a) - set(b)), "only_b": len(set(b) - set(a)),
+            "sum_a_s": sum_a, "sum_b_s": sum_b, "ratio": sum_b / sum_a if sum_a else float("nan"),
+            "median_ratio": statistics.median(ratios) if ratios else float("nan"), "n_ratios": len(ratios),
+            "slowed": [(t, a[t], b[t]) for t in slowed]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("a", type=Path, help="JUnit XML of the older commit")
+    ap.add_argument("b", type=Path, help="JUnit XML of the newer commit")
+    ap.add_argument("--min-s", type=float, default=0.05, help="tests shorter than this in A leave the median out")
+    args = ap.parse_args(argv)
+    r = compare(durations(args.a), durations(args.b), args.min_s)
+    if not r["common"]:
+        print(f"room: error: {args.a} and {args.b} have no passed test in common", file=sys.stderr)
+        return 2
+    print(f"tests passed in both: {r['common']} (only in A: {r['only_a']}, only in B: {r['only_b']})")
+    print(f"summed seconds: A {r['sum_a_s']:.1f}, B {r['sum_b_s']:.1f}, B / A {r['ratio']:.3f}")
+    print(f"median per-test B / A over {r['n_ratios']} tests of >= {args.min_s} s in A: {r['median_ratio']:.3f}")
+    print("slowed most (test, A s, B s):")
+    for t, sa, sb in r["slowed"]:
+        print(f"  {t}  {sa:.2f}  {sb:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
