@@ -449,6 +449,7 @@ CONFIG_ERRORS = {
     "mask_label_on_ct": (["patients.p.kind=ct", "+patients.p.mask_label=1"], r"mask_label applies to kind: mask"),
     "mask_label_text": (["+patients.p.mask_label=abc"], r"mask_label must be a number"),
     "label_and_threshold": (["+patients.p.mask_label=1", "+patients.p.mask_threshold=0.5"], r"not both"),
+    "start_pose_number": (["+patients.p.start_pose=3"], r"patients.p.start_pose must be a path"),
 }
 
 
@@ -472,7 +473,7 @@ def test_config_error_of_a_late_stage_reported_by_an_early_one(tree, tmp_path, b
 def test_corpus_size():
     n = (len(MASK_ERRORS) + len(MASK_ACCEPTS) + len(CT_ERRORS) + 3 + 1 + len(FILE_ERRORS) + len(DICOM_ERRORS) + 2
          + len(CONFIG_ERRORS) + 1 + 2)     # + 3 CTs repaired, the abdominal CT, 2 DICOM accepts, 1 + 2 run cases
-    assert n == 85, n
+    assert n == 86, n
 
 
 # ------------------------------------------------------------------ stale outputs and temp files

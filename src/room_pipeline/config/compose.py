@@ -109,7 +109,8 @@ def phantom_entry(cfg: Mapping[str, Any], patient: str) -> PhantomEntry:
 
 
 def patient_entry(cfg: DictConfig, patient: str) -> dict:
-    """The ``patients.<id>`` entry, validated."""
+    """The ``patients.<id>`` entry, validated: ``kind`` (ct | mask), ``input`` (path), optional ``mask_label`` /
+    ``mask_threshold`` (masks only, not both) and ``start_pose`` (path of a 4x4 pose in mm, the route's start)."""
     patients = cfg.get("patients") or {}
     if patient not in patients:
         known = ", ".join(sorted(patients)) or "none"
@@ -130,4 +131,7 @@ def patient_entry(cfg: DictConfig, patient: str) -> dict:
             raise ConfigError(f"patients.{patient}.{key} must be a number, got {v!r}")
     if entry.get("mask_label") is not None and entry.get("mask_threshold") is not None:
         raise ConfigError(f"patients.{patient}: give mask_label or mask_threshold, not both")
+    start = entry.get("start_pose")
+    if start is not None and (not isinstance(start, str) or not start):
+        raise ConfigError(f"patients.{patient}.start_pose must be a path (a Med-MPD start*.txt), got {start!r}")
     return entry  # type: ignore[return-value]

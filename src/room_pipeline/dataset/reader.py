@@ -62,7 +62,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.images import read_exr, read_flo, read_png
 from ..io.ply import read_ply
-from ..io.storage import POINT_CLOUD_JSON, stride_mask
+from ..io.storage import stride_mask
 from .. import catalog
 from ..catalog import FOLDERS, MODALITIES, RGB_NOISY  # noqa: F401 (FOLDERS, MODALITIES: re-exported)
 
@@ -180,7 +180,7 @@ class SequenceReader:
             if not folder.is_dir():
                 raise InputError(f"modality '{m}' requested but {folder} does not exist")
         if "point_cloud" in mods:
-            doc_path = self.path / FOLDERS["point_cloud"] / POINT_CLOUD_JSON
+            doc_path = catalog.SequencePaths(self.path).point_cloud_json
             self._pc_doc = _read_json(doc_path) if doc_path.is_file() else {"storage": "ply"}
             if self._pc_doc.get("storage") == "on_demand" and not (self.path / FOLDERS["depth"]).is_dir():
                 raise InputError(f"{doc_path}: point clouds are built from depth, but {self.path / FOLDERS['depth']} "

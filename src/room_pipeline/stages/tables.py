@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..catalog import SPEED_ACCURACY_CSV, TABLES_METRICS_JSON
 from ..errors import ConfigError
+from ..evaluate.pose_eval import PoseEvalParams
 from ..evaluate.reports import (TABLES, TablesParams, build_tables, other_anatomy_records, read_depth_files,
                                 read_pose_files, report_files)
 from ..io.atomic import write_json, write_text
@@ -70,7 +71,7 @@ def run(cfg: DictConfig, key: str) -> dict:
     n_finetune = len(finetune_docs)
     if finetune_docs:       # the fine-tuning ran: add its other-anatomy evaluation (module docstring)
         finetune_docs = finetune_docs + other_anatomy_records(cfg, depth_by_patient)
-    order = tuple((ev.get("pose") or {}).get("methods") or ())
+    order = tuple(PoseEvalParams.from_dict(ev.get("pose")).methods)     # the pose table's row order
     tables = build_tables(pose_docs, depth_docs, finetune_docs, p.digits, order)
     counts = {"patients": len(patients), "sequences": len(patients) * len(sequences),
               "pose_json": len(pose_docs), "depth_json": len(depth_docs), "depth_finetune_json": n_finetune}

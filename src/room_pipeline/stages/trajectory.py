@@ -44,8 +44,7 @@ def run(cfg: DictConfig, key: str) -> dict:
             raise ConfigError(f"{sequence} needs target #{index + 1} but trajectory.targets='{params.targets}' "
                               f"yields {len(targets)} for {patient}")
         # optional user start pose of the patient entry (conf/patients/*: start_pose: a Med-MPD start*.txt, 4x4, mm)
-        entry = (cfg.get("patients") or {}).get(patient) or {}
-        start_file = entry.get("start_pose") if hasattr(entry, "get") else None
+        start_file = patient_entry(cfg, patient).get("start_pose")
         start = read_start_pose(start_file) if start_file else None
         traj = plan_path(graph, targets[index], volume_sdf_fn(sdf), params, start=start)
     if start_file:  # DVC tracks the entry (params patients.<id>); the bytes it read are recorded here
