@@ -237,12 +237,14 @@ def _section(field: _Field, centre: np.ndarray, a: np.ndarray, r_max: float, h: 
 
 #: a flattened top cross-section is a carinal flare, not a flattened trachea, when the lumen divides into two
 #: airways (main bronchi) within this many trachea radii (``r_max``) below the top (``_divides_below``).
-#: Measured (reports' ``trachea_divides_below_mm`` / ``trachea_top_radius_mm``): Med-MPD 1 cut 10 / 5 / 2 mm above
-#: its carina divides 30.9 / 24.8 / 21.7 mm below the top, at most 4.57 radii (the flattened-trachea rule fired on
-#: all three); the synthetic flattened tracheas of tests/test_medial_axis.py (24 x 10 and 20 x 12 mm, upright and
-#: leaning 20 deg, 45 mm above the carina) 53.8-56.5 mm, at least 9.05 radii.  The threshold is their geometric
-#: mean (1.4 x from either side).  A flattened trachea cut less than about 6 radii above its ridge is read as a
-#: round one (the cut-entry rules).
+#: Measured (reports' ``trachea_divides_below_mm`` / ``_radii``, printed by ``pytest -s -m slow
+#: tests/test_medial_axis.py -k "real_mask_cut and patient1"`` and ``pytest -s tests/test_medial_axis.py -k
+#: "flare or flattened_tracheas_cut_end"``): Med-MPD 1 cut 10 / 5 / 2 mm above its carina divides 30.9 / 24.8 /
+#: 21.7 mm = 4.5 / 4.0 / 3.5 radii below the top (the flattened-trachea rule fired on all three); the synthetic
+#: flattened tracheas (24 x 10 and 20 x 12 mm, upright and leaning 20 deg, 45 mm above the carina) 53.8-56.5 mm
+#: = 9.0-11.25 radii; a synthetic flare cut 15 / 9 mm above the carina 3.25 / 2.25.  The threshold is the
+#: geometric mean of 4.5 and 9.0 (1.4 x from either).  A flattened trachea cut less than about 6 radii above its
+#: ridge is read as a round one (the cut-entry rules).
 FLARE_DEPTH_RADII = 6.4
 
 
