@@ -544,7 +544,8 @@ def test_real_mask_cut_above_the_carina(parts, above_mm, request):
     g = res.graph
     check_tree(g)
     rep = {k: v for k, v in res.report.items() if k.startswith("root") or k in (
-        "trachea_aspect_ratio", "trachea_top_sheet_fraction", "trachea_divides_below_mm", "trachea_divides_below_radii")}
+        "trachea_aspect_ratio", "trachea_top_sheet_fraction", "trachea_divides_below_mm",
+        "trachea_divides_below_radii")}
     ztop = cut.index_to_world(np.argwhere(cut.data > 0).astype(float))[:, 2].max()
     start, end = g.root.points[0], g.root.points[-1]
     tr = ref.root.points

@@ -252,11 +252,12 @@ def _divides_below(field: _Field, top: np.ndarray, axis: np.ndarray, r_max: floa
                    max_radii: float = 2.0 * FLARE_DEPTH_RADII) -> float | None:
     """How far (metres) below ``top`` along ``axis`` (the trachea's downward axis) the lumen first divides
     into two airways, searched down to ``max_radii`` ``r_max`` (twice the flare bound, so that the report
-    shows the margin) in steps of ``r_max`` / 4; None when it does not.  Each cross-section normal to ``axis`` (``_section``, half-voxel grid) is labelled; it divides
-    when its two largest lumen regions each have at least a quarter of the trachea's disc (pi ``r_max``^2 / 4:
-    a bronchus at least half the trachea's radius; voxel debris and sections of small side branches are
-    smaller).  A carinal flare (the cross-section widening along the line of the main bronchi just above the
-    carina) divides within a few radii; a flattened trachea runs on over many."""
+    shows the margin) in steps of ``r_max`` / 4; None when it does not.  Each cross-section normal to ``axis``
+    (``_section``, half-voxel grid) is labelled; it divides when its two largest lumen regions each have at
+    least a quarter of the trachea's disc (pi ``r_max``^2 / 4: a bronchus at least half the trachea's radius;
+    voxel debris and sections of small side branches are smaller).  A carinal flare (the cross-section
+    widening along the line of the main bronchi just above the carina) divides within a few radii; a
+    flattened trachea runs on over many."""
     a = axis / np.linalg.norm(axis)
     h = 0.5 * voxel
     for depth in np.arange(0.5, max_radii + 1e-9, 0.25):
