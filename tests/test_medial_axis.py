@@ -517,18 +517,10 @@ def _crop_above(vol: Volume, z: float) -> Volume:
     return Volume(np.ascontiguousarray(vol.data[tuple(sl)]), aff)
 
 
-#: real-mask cuts that still miss (issue #18), measured by this test (session 8):
-#: Med-MPD 1 cut 5 / 2 mm above: the cut tree's first bifurcation is the real carina, 12.2 / 9.3 mm below the
-#: full mask's, whose first bifurcation is where a second line on the carinal flare's medial sheet leaves the
-#: trachea (a terminal 18.5 mm branch that never leaves the right main bronchus' lumen; the cut trees' root
-#: rules drop it); Med-MPD 3 cut 5 / 2 mm above: the skeleton forks exactly at the full mask's carina, but
-#: within its own radius (6.3 mm) of the cut, so it is read as a fork made by the cut, and the trunk's widest
-#: point lies 11.8 mm lower (this trunk widens below its bifurcation, 6.3 -> 6.8 mm)
-_FLARE = ("known limit (issue #18): Med-MPD 1 cut {} mm above its real carina (the reference since the twig rule): "
-          "the top cross-section is the carinal flare (aspect 1.68, sheet fraction 0.98), the flattened-trachea rule "
-          "fires and the root ends {} mm from the carina (bound {})")
-KNOWN_CUT_LIMITS = {("patient1", 10.0): _FLARE.format(10, 13.9, 10), ("patient1", 5.0): _FLARE.format(5, 13.8, 7.5),
-                    ("patient1", 2.0): _FLARE.format(2, 15.3, 6)}
+#: real-mask cuts that still miss (issue #18): none since the carinal-flare test (``_divides_below``): Med-MPD 1
+#: cut 10 / 5 / 2 mm above its carina, whose top cross-section is the carinal flare (aspect 1.60-1.68, sheet
+#: fraction 0.88-0.99), ended its root 13.9 / 13.8 / 15.3 mm from the carina under the flattened-trachea rule
+KNOWN_CUT_LIMITS: dict = {}
 
 
 @pytest.mark.shared
@@ -551,7 +543,9 @@ def test_real_mask_cut_above_the_carina(parts, above_mm, request):
     res = extract_medial_axis(compute_sdf(crop_to_interior(cut, 6), SdfParams()))
     g = res.graph
     check_tree(g)
-    rep = {k: v for k, v in res.report.items() if k.startswith("root")}
+    rep = {k: v for k, v in res.report.items() if k.startswith("root") or k in (
+        "trachea_aspect_ratio", "trachea_top_sheet_fraction", "trachea_divides_below_mm",
+        "trachea_divides_below_radii")}
     ztop = cut.index_to_world(np.argwhere(cut.data > 0).astype(float))[:, 2].max()
     start, end = g.root.points[0], g.root.points[-1]
     tr = ref.root.points
@@ -649,6 +643,50 @@ FLAT = {"24x10": (12.0, 5.0, 0.0), "20x12": (10.0, 6.0, 0.0), "24x10_tilted_20de
         "20x12_tilted_20deg": (10.0, 6.0, 20.0)}
 
 
+def _flare_mask(top: float, h: float = 0.6) -> Volume:
+    """A trachea with a carinal flare, all lengths in mm: round (7 mm radius) down to z = -20, then over 30 mm
+    its elliptic cross-section widens along x to 14 mm and narrows along y to 5.5 mm half-axes (aspect 2.5 at
+    its bottom, z = -50); main bronchi (5.5 mm radius, 34 deg from vertical) leave from (+-6, 0, -45).  The scan
+    is cut at z = ``top`` (the volume's top slice).  Grid spacing ``h``; affine in metres."""
+    x, y, z = np.arange(-45, 45.01, h), np.arange(-12, 12.01, h), np.arange(-80, top + 0.01, h)
+    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
+    f = np.clip((Z + 20.0) / -30.0, 0.0, 1.0)
+    m = (Z >= -50) & ((X / (7 + 7 * f)) ** 2 + (Y / (7 - 1.5 * f)) ** 2 <= 1.0)
+    for sx in (-1.0, 1.0):
+        d, o = np.array([sx * np.sin(0.6), 0.0, -np.cos(0.6)]), np.array([sx * 6.0, 0.0, -45.0])
+        t = np.clip((X - o[0]) * d[0] + (Z - o[2]) * d[2], 0, 35)
+        m |= (X - o[0] - t * d[0]) ** 2 + Y ** 2 + (Z - o[2] - t * d[2]) ** 2 <= 5.5 ** 2
+    aff = np.diag([h * MM] * 3 + [1.0])
+    aff[:3, 3] = [x[0] * MM, y[0] * MM, z[0] * MM]
+    return Volume(m.astype(np.uint8), aff)
+
+
+@pytest.mark.parametrize("top", [-30.0, -36.0])
+def test_a_cut_at_the_carinal_flare_is_not_a_flattened_trachea(top):
+    """Issue #18 (Med-MPD 1 cut 10 / 5 / 2 mm above its carina): a scan cut 15 / 9 mm above the carina (z = -45)
+    through the carinal flare has a flattened top cross-section (aspect 1.7-2.1, its medial set a sheet under the
+    -36 cut: the flattened-trachea rule fired there and the route started in a bronchus, 37 mm below the cut).
+    The lumen divides into the two main bronchi 21 / 14 mm (3.3 / 2.3 radii) below the top
+    (``trachea_divides_below_mm``, bound ``FLARE_DEPTH_RADII``): a flare, read by the round-trachea rules.  The
+    route starts at the cut on the axis and the root ends within 6 mm of the carina (measured 5.0 / 4.8 mm) with
+    the two main bronchi below it."""
+    from room_pipeline.anatomy.medial_axis import FLAT_ASPECT
+    from room_pipeline.anatomy.trachea_root import FLARE_DEPTH_RADII
+
+    res = extract_medial_axis(compute_sdf(_flare_mask(top), SdfParams()), MedialAxisParams())
+    g = res.graph
+    check_tree(g)
+    rep = {k: v for k, v in res.report.items() if k.startswith("root") or k.startswith("trachea")}
+    assert rep["trachea_aspect_ratio"] > FLAT_ASPECT, rep
+    print(f"\nflare cut at z = {top:g} mm: divides {rep['trachea_divides_below_mm']} mm = "
+          f"{rep['trachea_divides_below_radii']} radii below the top; root end {g.root.points[-1] / MM} mm")
+    assert rep["root_centred"] is False and rep["trachea_carinal_flare"] is True, rep
+    assert 0 < rep["trachea_divides_below_radii"] <= FLARE_DEPTH_RADII, rep
+    assert g.root.points[0][2] > (top - 3) * MM and np.hypot(*g.root.points[0][:2]) < 1 * MM, rep
+    assert np.linalg.norm(g.root.points[-1] - np.array([0, 0, -45]) * MM) < 6 * MM, (g.root.points[-1] / MM, rep)
+    assert len(g.children(g.root.id)) == 2 and len(g.branches) == 3, rep
+
+
 @pytest.mark.parametrize("case", sorted(FLAT))
 def test_root_is_the_flattened_tracheas_cut_end(case):
     """Issue #18 (fibrotic lungs, CASE073): a flattened trachea's medial surface is a sheet.  The most
@@ -664,6 +702,9 @@ def test_root_is_the_flattened_tracheas_cut_end(case):
     top = vol.index_to_world(np.array([[0.0, 0.0, vol.shape[2] - 1.0]]))[0, 2]
     rep = {k: v for k, v in res.report.items() if k.startswith("root") or k.startswith("trachea")}
     assert res.report["root_centred"] is True, rep
+    print(f"\n{case}: divides {rep['trachea_divides_below_mm']} mm = {rep['trachea_divides_below_radii']} radii "
+          "below the top")
+    assert res.report["trachea_carinal_flare"] is False, rep              # not a carinal flare
     assert g.root.points[0][2] > top - 3 * MM, rep                        # starts at the cut ...
     axis_x = np.tan(np.deg2rad(tilt)) * 45 * MM
     assert abs(g.root.points[0][0] - axis_x) < 2 * MM, rep                 # ... in the middle of the cross-section

@@ -67,9 +67,9 @@ from ..errors import ConfigError, InputError
 from ..io.volume import Volume
 from .centreline import CentrelineGraph, GraphBranch
 from .sdf_field import SdfField as _Field
-from .trachea_root import (ENTRY_ARM_DESCENT_DEG, FLAT_ASPECT, _arm_headings, _twig_inside_lumen,
-                           _arms_split, _cross_section_aspect, _cut_entry, _root_arms, _sheet_like, _sheet_trunk,
-                           _top_centre, _trachea_sheet)
+from .trachea_root import (ENTRY_ARM_DESCENT_DEG, FLARE_DEPTH_RADII, FLAT_ASPECT, _arm_headings,
+                           _twig_inside_lumen, _arms_split, _cross_section_aspect, _cut_entry, _divides_below,
+                           _root_arms, _sheet_like, _sheet_trunk, _top_centre, _trachea_sheet)
 
 log = logging.getLogger(__name__)
 
@@ -387,7 +387,15 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     rep["trachea_top_spread_mm"] = round(spread / 1e-3, 3)
     rep["trachea_top_radius_mm"] = round(float(rad[centre]) / 1e-3, 3)
     rep["trachea_top_sheet_fraction"] = round(sheet_frac, 3)
-    rep["root_centred"] = bool(aspect > FLAT_ASPECT and sheet_frac > 0.5)
+    # A flattened top that divides into two airways within FLARE_DEPTH_RADII trachea radii below is the carinal
+    # flare of a scan cut just above the carina (Med-MPD 1 cut 10 / 5 / 2 mm above: aspect 1.60-1.68, sheet
+    # fraction 0.88-0.99), not a flattened trachea: the round-trachea and cut-entry rules below read it.
+    divides = _divides_below(field, pts[centre], ax4, float(rad[imax]), voxel)
+    rep["trachea_divides_below_mm"] = None if divides is None else round(divides / 1e-3, 2)
+    flare = divides is not None and divides <= FLARE_DEPTH_RADII * float(rad[imax])
+    rep["trachea_divides_below_radii"] = None if divides is None else round(divides / float(rad[imax]), 2)
+    rep["trachea_carinal_flare"] = bool(flare)
+    rep["root_centred"] = bool(aspect > FLAT_ASPECT and sheet_frac > 0.5 and not flare)
     top_root = root
     if rep["root_centred"]:
         root = centre

@@ -7,7 +7,9 @@ apart because they are one job -- reading the top of the skeleton -- with their 
   (:func:`_root_arms`), their headings (:func:`_arm_headings`), where they part (:func:`_arms_split`) and
   the middle of the cut cross-section (:func:`_cut_entry`);
 - a flattened trachea (its medial set a sheet): the top cross-section's centre (:func:`_top_centre`), the
-  lumen's cross-section aspect ratio (:func:`_cross_section_aspect`, threshold :data:`FLAT_ASPECT`), the
+  lumen's cross-section aspect ratio (:func:`_cross_section_aspect`, threshold :data:`FLAT_ASPECT`), whether
+  the lumen divides into the main bronchi within a few radii below (a carinal flare, not a flattened trachea:
+  :func:`_divides_below`, :data:`FLARE_DEPTH_RADII`), the
   sheet test (:func:`_sheet_like`, :data:`SHEET_RATIO`), the sheet (:func:`_trachea_sheet`) and the one
   trunk across it (:func:`_sheet_trunk`);
 - a twig at the first bifurcation whose lumen never leaves the tree's (:func:`_twig_inside_lumen`).
@@ -219,6 +221,56 @@ def _cut_entry(root: int, pts: np.ndarray, rad: np.ndarray, field: _Field, voxel
     return e
 
 
+def _section(field: _Field, centre: np.ndarray, a: np.ndarray, r_max: float, h: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lumen's cross-section through ``centre`` normal to the unit vector ``a``: the plane's in-plane
+    coordinates S, T (metres, a grid of step ``h`` over a 6 ``r_max`` square) and whether each lies in the
+    lumen (sdf < 0)."""
+    u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(a, u)
+    g = np.arange(-3.0 * r_max, 3.0 * r_max + 0.5 * h, h)
+    S, T = np.meshgrid(g, g, indexing="ij")
+    P = centre + S.reshape(-1, 1) * u + T.reshape(-1, 1) * v
+    return S, T, (field.sample(field.to_index(P))[:, 0] < 0).reshape(S.shape)
+
+
+#: a flattened top cross-section is a carinal flare, not a flattened trachea, when the lumen divides into two
+#: airways (main bronchi) within this many trachea radii (``r_max``) below the top (``_divides_below``).
+#: Measured (reports' ``trachea_divides_below_mm`` / ``_radii``, printed by ``pytest -s -m slow
+#: tests/test_medial_axis.py -k "real_mask_cut and patient1"`` and ``pytest -s tests/test_medial_axis.py -k
+#: "flare or flattened_tracheas_cut_end"``): Med-MPD 1 cut 10 / 5 / 2 mm above its carina divides 30.9 / 24.8 /
+#: 21.7 mm = 4.5 / 4.0 / 3.5 radii below the top (the flattened-trachea rule fired on all three); the synthetic
+#: flattened tracheas (24 x 10 and 20 x 12 mm, upright and leaning 20 deg, 45 mm above the carina) 53.8-56.5 mm
+#: = 9.0-11.25 radii; a synthetic flare cut 15 / 9 mm above the carina 3.25 / 2.25.  The threshold is the
+#: geometric mean of 4.5 and 9.0 (1.4 x from either).  A flattened trachea cut less than about 6 radii above its
+#: ridge is read as a round one (the cut-entry rules).
+FLARE_DEPTH_RADII = 6.4
+
+
+def _divides_below(field: _Field, top: np.ndarray, axis: np.ndarray, r_max: float, voxel: float,
+                   max_radii: float = 2.0 * FLARE_DEPTH_RADII) -> float | None:
+    """How far (metres) below ``top`` along ``axis`` (the trachea's downward axis) the lumen first divides
+    into two airways, searched down to ``max_radii`` ``r_max`` (twice the flare bound, so that the report
+    shows the margin) in steps of ``r_max`` / 4; None when it does not.  Each cross-section normal to ``axis``
+    (``_section``, half-voxel grid) is labelled; it divides when its two largest lumen regions each have at
+    least a quarter of the trachea's disc (pi ``r_max``^2 / 4: a bronchus at least half the trachea's radius;
+    voxel debris and sections of small side branches are smaller).  A carinal flare (the cross-section
+    widening along the line of the main bronchi just above the carina) divides within a few radii; a
+    flattened trachea runs on over many."""
+    a = axis / np.linalg.norm(axis)
+    h = 0.5 * voxel
+    for depth in np.arange(0.5, max_radii + 1e-9, 0.25):
+        _, _, inside = _section(field, top + depth * r_max * a, a, r_max, h)
+        lab, n = ndimage.label(inside)
+        if n < 2:
+            continue
+        area = np.sort(np.bincount(lab.ravel())[1:])[::-1] * h * h
+        if area[1] >= 0.25 * np.pi * r_max * r_max:
+            return float(depth * r_max)
+    return None
+
+
 def _cross_section_aspect(field: _Field, top: np.ndarray, axis: np.ndarray, r_max: float, voxel: float
                           ) -> float:
     """The trachea lumen's cross-section aspect ratio (long / short axis, 1 for a circle): the median over
@@ -229,17 +281,11 @@ def _cross_section_aspect(field: _Field, top: np.ndarray, axis: np.ndarray, r_ma
     fills less than 0.9 of its convex hull (two lobes: a trachea cut just above the carina, sectioned in its
     bifurcation) is skipped; with none left the ratio is 1 (no switch)."""
     a = axis / np.linalg.norm(axis)
-    u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(a, u)
     h = 0.5 * voxel
-    g = np.arange(-3.0 * r_max, 3.0 * r_max + 0.5 * h, h)
-    S, T = np.meshgrid(g, g, indexing="ij")
     out = []
     for depth in (0.5, 1.0, 1.5):
-        c = top + depth * r_max * a
-        P = c + S.reshape(-1, 1) * u + T.reshape(-1, 1) * v
-        inside = (field.sample(field.to_index(P))[:, 0] < 0).reshape(S.shape)
+        S, T, inside = _section(field, top + depth * r_max * a, a, r_max, h)
+        g = S[:, 0]
         lab, n = ndimage.label(inside)
         if n == 0:
             continue
