@@ -200,6 +200,21 @@ def test_volume_sdf_interpolation_path():
         assert np.all(tree.sdf(tr.positions)[0] < 0)  # inside the true lumen
 
 
+def test_volume_sdf_reads_the_outermost_cells_to_their_faces():
+    """A route start on a mask cut in its top slice (Med-MPD 1 cropped 3 mm above its carina: the root lies along
+    the top slice) sits a hair beyond the outermost samples: inside the outermost cell it reads the face sample,
+    more than half a voxel out it reads ``outside``."""
+    from room_pipeline.io.volume import Volume
+
+    data = np.arange(4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6) * -1e-4
+    aff = np.diag([0.5e-3, 0.5e-3, 0.5e-3, 1.0])
+    fn = volume_sdf_fn(Volume(data, aff))
+    ijk = np.array([[-0.3, 2.0, 3.0], [3.4, 4.49, 5.2], [-0.7, 2.0, 3.0], [1.0, 2.0, 5.6]])
+    got = fn(ijk * 0.5e-3)
+    np.testing.assert_allclose(got[:2], [data[0, 2, 3], data[3, 4, 5]], atol=1e-9)
+    np.testing.assert_allclose(got[2:], [1.0, 1.0])
+
+
 # --------------------------------------------------------------------------- hard cases
 
 

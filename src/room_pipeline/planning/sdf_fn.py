@@ -16,14 +16,19 @@ SdfFn = Callable[[np.ndarray], np.ndarray]
 def volume_sdf_fn(volume, outside: float = 1.0) -> SdfFn:
     """Trilinear interpolation of an SDF :class:`~room_pipeline.io.volume.Volume` (metres).
 
-    Points outside the grid read ``outside`` metres (outside the lumen).
+    The grid's voxels are cells centred on the samples: a point within half a voxel beyond the outermost
+    samples (still inside the outermost cells, e.g. a route start on a mask cut in its top slice) reads the
+    nearest face sample; points farther outside read ``outside`` metres (outside the lumen).
     """
     data = np.asarray(volume.data, dtype=np.float64)
     inv = np.linalg.inv(volume.affine)
+    hi = np.asarray(data.shape[:3], dtype=np.float64) - 1.0
 
     def fn(points: np.ndarray) -> np.ndarray:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         ijk = p @ inv[:3, :3].T + inv[:3, 3]
+        in_cell = np.all((ijk >= -0.5) & (ijk <= hi + 0.5), axis=1)
+        ijk = np.where(in_cell[:, None], np.clip(ijk, 0.0, hi), ijk)
         return map_coordinates(data, ijk.T, order=1, mode="constant", cval=float(outside), prefilter=False)
 
     return fn
