@@ -17,8 +17,8 @@ metered exposure (as ``cycles_reference.py``).  Per view, the ray caster's defau
 * **pixel filter**: the same ray caster integrated over each pixel's footprint (``S`` x ``S`` sub-pixel
   samples, ``--ss``, weighted with Cycles' pixel filter: separable Blackman-Harris of width
   ``CyclesSettings.filter_width`` = 1.5 px, in linear radiance) — what one ray through each pixel centre
-  leaves out; ``RaycastConfig.edge_samples`` (the filter at the silhouette pixels only); and
-  ``render.shading_stride`` 1;
+  leaves out; ``RaycastConfig.edge_samples`` (the filter at the silhouette pixels only);
+  ``render.shading_stride`` 1; ``render.direct_shadows`` flipped (a shadow ray per pixel for the direct light);
 * **light terms** (``--direct``): a Cycles reference of the direct light alone (0 bounces, ``--direct-spp``)
   against the ray caster's direct term alone (0 bounces), and the product with either term swapped for
   Cycles' (the error left is the other term's);
@@ -79,15 +79,16 @@ def rc_linear(sc, cfg) -> tuple[np.ndarray, np.ndarray, float]:
 
 def direct_reference(ref_scene, normals, i: int, name: str, args) -> np.ndarray:
     """Cycles' direct light alone (0 bounces, ``--direct-spp``, no denoiser), linear at exposure 0; cached."""
-    from cycles_reference import CACHE, cache_key, view_scene
+    from cycles_reference import CACHE, cache_key, reference_transport, view_scene
     from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
 
-    p = CACHE / f"direct_{name}_{i}_{cache_key(ref_scene, i, args.res, args.direct_spp, 0)}.npy"
+    tr = reference_transport(args)
+    p = CACHE / f"direct_{name}_{i}_{cache_key(ref_scene, i, args.res, args.direct_spp, 0, tr)}.npy"
     if p.exists():
         return np.load(p)
     p.parent.mkdir(parents=True, exist_ok=True)
     st = CyclesSettings(samples=args.direct_spp, adaptive_threshold=0.0, denoise=False, seed=1000, exposure=0.0,
-                        max_bounces=0, threads=args.threads)
+                        max_bounces=0, threads=args.threads, **tr)
     c0 = time.process_time()
     with CyclesRenderer(view_scene(ref_scene, i), st, vertex_normals=normals) as r:
         img = r.render(0, ("rgb",))["rgb"].astype(np.float32)
@@ -113,6 +114,8 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--ref-bounces", type=int, default=8)
     ap.add_argument("--ref-subdivide", type=int, default=2)
+    ap.add_argument("--ref-blender-defaults", action="store_true",
+                    help="cycles_reference.py's session-10 references (no tip-light shadows, clamp 10, Filter Glossy 1)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--ss", default="3,5", help="odd sub-pixel sample counts per axis for the pixel-filter check")
     ap.add_argument("--edge-samples", default="3", help="RaycastConfig.edge_samples values to score (0 = skip)")
@@ -175,6 +178,8 @@ def main() -> None:
             regions = {"centre": rr < 0.5, "periphery": rr >= 0.5, "near<10mm": (dmm > 0) & (dmm < 10),
                        "10-25mm": (dmm >= 10) & (dmm < 25), "far>25mm": dmm >= 25, "no hit": depth <= 0,
                        "silhouettes": sil, "not silhouettes": ~sil}
+            rl = ref8 @ np.array([0.2126, 0.7152, 0.0722])
+            regions["highlights (ref top 1 %)"] = rl >= np.percentile(rl, 99)
             es = e.sum(axis=2)
             row["regions"] = {k: {"share": float(es[m].sum() / es.sum()), "frac_px": float(m.mean()),
                                   "psnr_db": cr.psnr(float(e[m].mean())) if m.any() else None}
@@ -186,6 +191,8 @@ def main() -> None:
             var = {}
             lin1, _, cpu1 = rc_linear(sc, dataclasses.replace(cfg, shading_stride=1))
             var["shading_stride 1"] = (lin1, cpu1)
+            lin_s, _, cpu_s_ = rc_linear(sc, dataclasses.replace(cfg, direct_shadows=not cfg.direct_shadows))
+            var[f"direct_shadows {not cfg.direct_shadows}"] = (lin_s, cpu_s_)
             for m in (int(x) for x in args.edge_samples.split(",") if x and int(x) > 0):
                 if m != cfg.edge_samples:
                     img, _, cpu_m = rc_linear(sc, dataclasses.replace(cfg, edge_samples=m))
