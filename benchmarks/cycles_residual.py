@@ -237,7 +237,8 @@ def main() -> None:
 def write_md(d: dict) -> None:
     a = d["args"]
     cmd = "python benchmarks/cycles_residual.py " + " ".join(f"--views {v}" for v in a["views"]) + \
-        f" --res {a['res']} --ss {a['ss']}" + (" --direct" if a["direct"] else "") + \
+        f" --res {a['res']} --ref-spp {a['ref_spp']} --ss {a['ss']}" + (" --direct" if a["direct"] else "") + \
+        (" --ref-blender-defaults" if a.get("ref_blender_defaults") else "") + \
         "".join(f" --set {s}" for s in a["set"]) + f" --out {a['out']}"
     L = [f"# The default RGB's whole-frame error against the {a['ref_spp']}-spp Cycles reference, split (issue #15)", "",
          f"`{cmd}` (module docstring; {a['res']}x{a['res']} whole frames; load average {d['load_avg_end'][0]:.1f} at "
