@@ -12,10 +12,14 @@ Where the radiance is smooth over the footprint the filter changes little (its s
 **silhouette** crosses the footprint (a fold's or the carina's edge in front of a farther wall, the lumen's
 dark opening) the filter mixes two surfaces whose radiance differs many-fold, and a centre ray picks one of
 them: the error is of the order of the contrast, at every such pixel.  :func:`silhouette_pixels` finds those
-pixels from the frame's own depth (a relative depth jump to a 3x3 neighbour, or hit next to no hit), and
+pixels from the frame's own depth (a jump in the second difference of 1/depth, or hit next to no hit), and
 :func:`filter_offsets` gives ``m x m`` sub-pixel offsets at the quantiles of ``B`` (deterministic, equal
 weights: the same estimator as Cycles' importance sampling, stratified); the renderer shades them there and
 averages (:meth:`room_pipeline.render.raycast.RaycastRenderer.render`, ``RaycastConfig.edge_samples``).
+
+Measured against Cycles (``benchmarks/results/cycles_residual_s11.md``, 200x200 whole frames): silhouettes are
+0.2-0.8 % of the pixels and 1-5 % of the squared error; ``edge_samples`` 3 gains 0.0-0.26 dB PSNR*, every pixel
+integrated (3x3) 0.3-0.5 dB: the pixel filter is not what keeps the default RGB from Cycles, so it is off by default.
 """
 from __future__ import annotations
 
