@@ -18,7 +18,10 @@ it) and ``distal`` (90 % along the sequence).
 
 1. Reference (``--make-refs``; cached under ``benchmarks/.cache/cycles_reference/``, keyed by mesh and
    pose, so it is reusable): two independent renders of ``ref_spp / 2`` samples each (no adaptive
-   sampling, no denoiser, seeds 1000/1001, ``--ref-bounces`` bounces), averaged in linear radiance.  The
+   sampling, no denoiser, seeds 1000/1001, ``--ref-bounces`` bounces; unbiased light transport: shadow rays
+   for the tip light, bounced samples not clamped, no Filter Glossy, as realism_indirect.py's references;
+   ``--ref-blender-defaults``: session 10's, with Blender's clamp of 10, Filter Glossy 1 and the product
+   preset's light without shadows), averaged in linear radiance.  The
    reference's own noise: ``MSE_ref = MSE(a, b) / 4`` of the 8-bit outputs; PSNR* of a candidate =
    ``10 log10(1 / (MSE - MSE_ref))`` estimates its PSNR against the noise-free image.
 2. Every candidate's linear radiance goes through the same film (the view's automatic exposure as the
@@ -161,7 +164,18 @@ def view_scene(scene, i: int):
     return sc
 
 
-def cache_key(scene, i: int, res: int, spp: int, bounces: int) -> str:
+#: the reference's light transport: shadow rays for the tip light, no clamp of bounced samples, no Filter Glossy
+#: (the unbiased path-traced image, as realism_indirect.py's references); Blender's defaults (no shadows from the
+#: point light as the product's preset, indirect samples clamped at 10, Filter Glossy 1.0) were session 10's
+UNBIASED = {"cast_shadows": True, "clamp_indirect": 0.0, "filter_glossy": 0.0}
+BLENDER_DEFAULTS = {"cast_shadows": False, "clamp_indirect": 10.0, "filter_glossy": 1.0}
+
+
+def reference_transport(args) -> dict:
+    return dict(BLENDER_DEFAULTS if getattr(args, "ref_blender_defaults", False) else UNBIASED)
+
+
+def cache_key(scene, i: int, res: int, spp: int, bounces: int, transport: dict | None = None) -> str:
     h = hashlib.sha1()
     h.update(np.ascontiguousarray(scene.mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(scene.mesh.faces, dtype=np.int64).tobytes())
@@ -171,13 +185,16 @@ def cache_key(scene, i: int, res: int, spp: int, bounces: int) -> str:
     # the texture mode only when not the vertex bake, so references made before the OSL shader keep their keys
     tex = CyclesSettings().texture
     h.update(repr((scene.material, scene.light, res, spp, bounces) + (() if tex == "vertex" else (tex,))).encode())
+    if transport is not None and transport != BLENDER_DEFAULTS:     # session 10's references keep their keys
+        h.update(repr(sorted(transport.items())).encode())
     return h.hexdigest()[:16]
 
 
 def make_reference(scene, i: int, name: str, args, normals: np.ndarray | None = None) -> Path:
     from room_pipeline.render.blender import CyclesRenderer, CyclesSettings
 
-    key = cache_key(scene, i, args.res, args.ref_spp, args.ref_bounces)
+    transport = reference_transport(args)
+    key = cache_key(scene, i, args.res, args.ref_spp, args.ref_bounces, transport)
     out = CACHE / f"{name}_{i}_{key}"
     if (out / "meta.json").exists():
         print(f"{name} (pose {i}): cached reference {out}", flush=True)
@@ -191,7 +208,7 @@ def make_reference(scene, i: int, name: str, args, normals: np.ndarray | None = 
             halves.append(np.load(p))
             continue
         st = CyclesSettings(samples=args.ref_spp // 2, adaptive_threshold=0.0, denoise=False, seed=seed,
-                            exposure=0.0, max_bounces=args.ref_bounces, threads=args.threads)
+                            exposure=0.0, max_bounces=args.ref_bounces, threads=args.threads, **transport)
         with CyclesRenderer(sc, st, vertex_normals=normals) as r:
             c0 = time.process_time()
             img = r.render(0, ("rgb",))["rgb"].astype(np.float32)
@@ -203,7 +220,7 @@ def make_reference(scene, i: int, name: str, args, normals: np.ndarray | None = 
         print(f"{name} (pose {i}): reference half seed {seed}: {times[-1]['wall_s']:.0f} s wall, "
               f"{times[-1]['cpu_s']:.0f} s CPU", flush=True)
     meta = {"view": name, "pose_index": i, "pose": scene.poses[i].tolist(), "res": args.res, "spp": args.ref_spp,
-            "bounces": args.ref_bounces, "subdivision_levels": args.ref_subdivide,
+            "bounces": args.ref_bounces, "subdivision_levels": args.ref_subdivide, "transport": transport,
             "mesh_faces": int(scene.mesh.n_faces), "halves": times, "linear": "raw linear radiance (exposure 0)",
             "load_avg": os.getloadavg()}
     (out / "meta.json").write_text(json.dumps(meta, indent=1))
@@ -217,10 +234,14 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=600)
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--ref-bounces", type=int, default=8)
+    ap.add_argument("--ref-blender-defaults", action="store_true",
+                    help="session 10's reference: no shadow rays from the tip light, bounced samples clamped at 10, "
+                         "Filter Glossy 1.0 (default: the unbiased reference, shadows on, no clamp, no glossy filter)")
     ap.add_argument("--ref-subdivide", type=int, default=2,
                     help="linear subdivisions of the mesh for the reference (appearance baked at 4^n x the vertices)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--views", default="trachea,bifurcation,distal")
+    ap.add_argument("--candidates", default="all", help="'all' or 'raycast' (the ray caster's rows only)")
     ap.add_argument("--full-grid", action="store_true", help="also 2 spp, no-denoiser 1/16 spp, 2/4 bounces, ...")
     ap.add_argument("--fit-interreflection", action="store_true",
                     help="fit render.interreflection (F, window) of the ray caster against Cycles on fit views that "
@@ -481,6 +502,8 @@ def score_all(scene, views, names, refs, rp, args, ref_scene_normals) -> None:
                      (4, True, 3, 1.0, "subdivided")]
         if args.quick:
             grid = grid[:2] + grid[-1:]
+        if args.candidates == "raycast":
+            grid = []
         ref_scene, ref_normals = ref_scene_normals
         for spp, dn, bounces, scale, which in grid:
             if which == "subdivided" and ref_normals is None:
@@ -536,12 +559,20 @@ def _light_text(rp: dict) -> str:
     return f"tip light {where}, {shape}, {rp.get('light_falloff', 'inverse_square')} falloff{extra}"
 
 
+def _transport_text(t: dict) -> str:
+    return (f"tip-light shadows {'on' if t['cast_shadows'] else 'off'}, indirect clamp "
+            f"{t['clamp_indirect'] or 'off'}, Filter Glossy {t['filter_glossy']}")
+
+
 def write_md(d: dict) -> None:
     m = d["machine"]
     a = d["args"]
     L = [f"# The default RGB and Cycles against a {a['ref_spp']}-sample Cycles reference (render stage's scene)", "",
          f"`python benchmarks/cycles_reference.py --inputs {d['inputs']} --views {a['views']} --res {a['res']} "
-         f"--ref-spp {a['ref_spp']}` on {m['nproc']} CPU cores shared with "
+         f"--ref-spp {a['ref_spp']}"
+         + (" --ref-blender-defaults" if a.get("ref_blender_defaults") else "")
+         + (f" --candidates {a['candidates']}" if a.get("candidates", "all") != "all" else "")
+         + f"` on {m['nproc']} CPU cores shared with "
          f"other jobs (load average {m['load_avg_at_start'][0]:.1f} at start, {m['load_avg_at_end'][0]:.1f} at end; "
          f"{m['cpu_threads']} threads); no GPU.  Scene: the render stage's default (the ray caster with its "
          "precomputed inter-reflection and the appearance function per pixel; Cycles evaluating the same function "
@@ -554,6 +585,7 @@ def write_md(d: dict) -> None:
         half = r["halves"][0] if r["halves"] else {}
         L += [f"## {ref['view']} (pose {ref['pose_index']}, {r['res']}x{r['res']}, exposure {ref['exposure_ev']:+.2f} EV)",
               "", f"Reference: {r['spp']} spp (two halves, no adaptive sampling, no denoiser), {r['bounces']} bounces"
+              + (f", {_transport_text(r['transport'])}" if r.get("transport") else "")
               + (f"; {half.get('cpu_s', float('nan')):.0f} CPU s per half" if half else "")
               + f"; its own PSNR vs the noise-free image {ref['ref_psnr_vs_noise_free_db']:.1f} dB (PSNR* removes it).",
               "", "| method | CPU s/frame | wall s/frame | PSNR dB | PSNR* dB | SSIM |", "|---|---|---|---|---|---|"]

@@ -405,7 +405,8 @@ def speed(scene, views, names, args) -> None:
         for nb, k in grid:
             rp = render_params_default({k_: json.loads(v) for k_, v in (x.split("=", 1) for x in args.set)})
             cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k,
-                                                                               caustics=rp.indirect_caustics))
+                                                                               caustics=rp.indirect_caustics),
+                                edge_samples=rp.edge_samples, edge_depth_jump=rp.edge_depth_jump)
             rc = RaycastRenderer(sc, cfg)
             b0 = time.process_time()
             if nb:
@@ -492,7 +493,7 @@ def write_md(out: str = "realism_indirect") -> None:
         a = d["args"]
         L += [f"## Cost per {a['res']}x{a['res']} frame ({a['threads']} threads)", "",
               f"`python benchmarks/realism_indirect.py --inputs {a['inputs']} --res {a['res']} --speed --grid "
-              f"{a['grid']}`: the render stage's RGB (cast, normals, per-pixel appearance, shading, indirect, film; "
+              f"{a['grid']}{''.join(' --set ' + x for x in a.get('set') or [])} --out {a.get('out')}`: the render stage's RGB (cast, normals, per-pixel appearance, shading, indirect, film; "
               "median of 3, the precomputation excluded and listed), load average "
               f"{d['load_avg'][0]:.1f} on {d['nproc']} cores (wall is inflated by the other users).", "",
               "| view | bounces | K rays/vertex | CPU s/frame | wall s/frame | precompute CPU s (once per mesh) |",

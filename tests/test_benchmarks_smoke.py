@@ -75,6 +75,7 @@ SMOKE = {
     "simulation_record_bytes.py": ([str(RUN)], ("run",)),
     "cycles_quality.py": (["--quick"], ("bpy", "run")),
     "cycles_reference.py": (["--quick"], ("bpy", "run")),
+    "cycles_residual.py": (["--quick", "--direct"], ("bpy", "run")),
 }
 
 #: scripts without a smoke mode (yet) -> why

@@ -67,9 +67,12 @@ class RenderParams:
     response: str = "srgb"
     gamma: float = 2.2
     shading_stride: int = 2
+    edge_samples: int = 0
+    edge_depth_jump: float = 0.15
     texture: dict = dataclasses.field(default_factory=dict)
     cycles_samples: int = 4
     cycles_denoise: bool = True
+    cycles_bounces: int = 8
     storage: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
@@ -99,6 +102,12 @@ class RenderParams:
             raise ConfigError(f"render.light_offset_mm must be 3 numbers (camera frame, mm), got {p.light_offset_mm!r}")
         if p.shading_stride < 1:
             raise ConfigError(f"render.shading_stride must be >= 1, got {p.shading_stride}")
+        if isinstance(p.cycles_bounces, bool) or not isinstance(p.cycles_bounces, int) or p.cycles_bounces < 0:
+            raise ConfigError(f"render.cycles_bounces must be an integer >= 0, got {p.cycles_bounces!r}")
+        if isinstance(p.edge_samples, bool) or not isinstance(p.edge_samples, int) or p.edge_samples < 0 \
+                or not p.edge_depth_jump > 0:
+            raise ConfigError(f"render: edge_samples must be an integer >= 0 and edge_depth_jump > 0, got "
+                              f"{p.edge_samples!r}, {p.edge_depth_jump!r}")
         try:
             scene_parts(p)
             exposure_params(p)
@@ -163,7 +172,8 @@ def raycast_config(p: "RenderParams", nthreads: int = 0):
     from .raycast import RaycastConfig
 
     return RaycastConfig(nthreads=nthreads, shading_stride=p.shading_stride, indirect=indirect_config(p),
-                         direct_shadows=p.direct_shadows)
+                         direct_shadows=p.direct_shadows, edge_samples=p.edge_samples,
+                         edge_depth_jump=p.edge_depth_jump)
 
 
 def texture_params(d: Mapping[str, Any] | None) -> MucosaTexture:
@@ -179,4 +189,5 @@ def texture_params(d: Mapping[str, Any] | None) -> MucosaTexture:
 def cycles_settings(p: RenderParams, **kw: Any):
     from .blender import CyclesSettings
 
-    return CyclesSettings.from_dict({"samples": p.cycles_samples, "denoise": p.cycles_denoise, **kw})
+    return CyclesSettings.from_dict({"samples": p.cycles_samples, "denoise": p.cycles_denoise,
+                                     "max_bounces": p.cycles_bounces, **kw})

@@ -121,6 +121,11 @@ class RaycastConfig:
         still sees (``tests/test_realism.py::test_a_frame_in_the_shadow_of_a_fold``); off, those walls are
         lit as if nothing were between.  One more cast per frame; not the default (the default RGB's figures
         were measured without it).  The inter-reflection's vertex direct light always has shadow rays.
+    edge_samples: the pixel filter at silhouettes (:mod:`room_pipeline.render.antialias`): pixels at a depth
+        discontinuity (a relative jump of ~``edge_depth_jump`` in 1/depth; or hit next to no hit) are shaded
+        at ``edge_samples`` x ``edge_samples`` sub-pixel offsets at the quantiles of Cycles' pixel filter
+        (Blackman-Harris, 1.5 px) and averaged; 0 = one ray through every pixel centre.  RGB only: depth,
+        normals, flow and segmentation stay the centre ray's (exact per-pixel geometry).
     """
 
     smooth_normals: bool = True
@@ -134,8 +139,13 @@ class RaycastConfig:
     indirect: IndirectConfig = IndirectConfig()
     transport_albedo: str = "area_mean"
     direct_shadows: bool = False
+    edge_samples: int = 0
+    edge_depth_jump: float = 0.15
 
     def __post_init__(self) -> None:
+        if self.edge_samples < 0 or not self.edge_depth_jump > 0:
+            raise ValueError(f"edge_samples must be >= 0 and edge_depth_jump > 0, got {self.edge_samples}, "
+                             f"{self.edge_depth_jump}")
         if self.transport_albedo not in ("area_mean", "point"):
             raise ValueError(f"transport_albedo must be 'area_mean' or 'point', got {self.transport_albedo!r}")
         if self.flow_occlusion not in OCCLUSION_MODES:
@@ -212,6 +222,7 @@ class RaycastRenderer:
         self._cache: collections.OrderedDict[int, Cast] = collections.OrderedDict()
         self._exposure_ev: float | None = scene.film.exposure_ev
         self._radiosity: Radiosity | None = None
+        self._rad_frame: tuple | None = None          # (frame index, Radiosity.frame of it): the last frame's
         self.timings: dict[str, float] = collections.defaultdict(float)   # seconds, accumulated per step
         self.cast_count = 0
 
@@ -531,7 +542,9 @@ class RaycastRenderer:
         rad = self.radiosity
         t0 = time.perf_counter()
         pose = self.scene.poses[i]
-        ed, e, lv = rad.frame(pose, self.scene.light)
+        if self._rad_frame is None or self._rad_frame[0] != i:          # the sub-pixel samples reuse it
+            self._rad_frame = (i, rad.frame(pose, self.scene.light))
+        ed, e, lv = self._rad_frame[1]
         f = self.scene.mesh.faces
         tab = np.zeros((9, len(f) + 1), dtype=np.float32)
         tab[:, :-1] = e[f].reshape(-1, 9).T
@@ -560,6 +573,56 @@ class RaycastRenderer:
         out[~c.hit] = 0.0
         self.timings["indirect"] += time.perf_counter() - t0
         return out
+
+    # ------------------------------------------------------------------ pixel filter
+    def _filter_silhouettes(self, i: int, c: Cast, lin: np.ndarray) -> np.ndarray:
+        """``lin`` (H, W, 3) with its silhouette pixels replaced by the mean radiance of ``edge_samples``^2
+        sub-pixel rays at the pixel filter's quantiles (:mod:`room_pipeline.render.antialias`)."""
+        from .antialias import filter_offsets, silhouette_pixels
+
+        t0 = time.perf_counter()
+        mask = silhouette_pixels(c.depth, c.hit, self.config.edge_depth_jump)
+        yy, xx = np.nonzero(mask)
+        if len(yy) == 0:
+            return lin
+        uv = np.stack([xx, yy], axis=1).astype(np.float64)[:, None, :] + filter_offsets(self.config.edge_samples)[None]
+        dirs = self.scene.camera.rays_at(uv)                             # (N, m*m, 3), z = 1
+        sub = self._sub_renderer(dirs)
+        sc = sub._cast_grid(i)
+        lin[mask] = sub._linear(i, sc, *sub.camera_normals(i, sc)).mean(axis=1)
+        self.cast_count += sub.cast_count
+        self.timings["edge_samples"] += time.perf_counter() - t0
+        return lin
+
+    def _sub_renderer(self, dirs: np.ndarray) -> "RaycastRenderer":
+        """A view of this renderer (same BVH, tables, precomputed transport) whose 'image' is the (N, M) grid of
+        camera-frame directions ``dirs`` (N, M, 3), z = 1; the appearance and glossy rays at every sample."""
+        import copy
+
+        if self.config.indirect.bounces > 0:
+            self.radiosity                                               # built once, shared
+        sub = copy.copy(self)
+        sub.rays = np.asarray(dirs, dtype=np.float64)
+        sub._rays32 = sub.rays.reshape(-1, 3).astype(np.float32)
+        sub._rays_soa = tuple(np.ascontiguousarray(sub._rays32[:, k]) for k in range(3))
+        len2 = np.einsum("nmi,nmi->nm", sub.rays, sub.rays)
+        sub._ray_len2 = len2.astype(np.float32)
+        sub._inv_ray_len = (1.0 / np.sqrt(len2)).astype(np.float32)
+        sub.config = dataclasses.replace(self.config, shading_stride=1, edge_samples=0,
+                                         indirect=dataclasses.replace(self.config.indirect, glossy_stride=1))
+        sub._cache = collections.OrderedDict()
+        sub.cast_count = 0
+        return sub
+
+    def _cast_grid(self, i: int) -> Cast:
+        """The cast of this (sub-)renderer's own ray grid from pose ``i`` (not cached)."""
+        shape = self.rays.shape[:2]
+        out = self._cast_rays(self.scene.poses[i], self._rays32)
+        depth, hit = self._depth_from(out)
+        prim = out["primitive_ids"].numpy()
+        prim[~hit] = _INVALID
+        return Cast(depth=depth.reshape(shape), hit=hit.reshape(shape), prim=prim.reshape(shape),
+                    uv=out["primitive_uvs"].numpy().reshape(shape + (2,)))
 
     # ------------------------------------------------------------------ render
     def render(self, frame_index: int, modalities: Iterable[str] = ("rgb", "depth")) -> dict[str, np.ndarray]:
@@ -590,6 +653,8 @@ class RaycastRenderer:
         if "rgb" in mods:
             t0 = time.perf_counter()
             lin = self._linear(i, c, normals, n_dot_ray)
+            if self.config.edge_samples > 0:
+                lin = self._filter_silhouettes(i, c, lin)
             lin *= np.float32(2.0 ** ev)
             if film.vignetting > 0:
                 lin *= (self._inv_ray_len ** np.float32(film.vignetting))[..., None]
