@@ -53,8 +53,10 @@ REAL = Path(os.environ.get("ROOM_SHARED_DATA", ROOT.parent / "shared" / "data"))
 def ensure_inputs(inputs: str | None) -> Path:
     if inputs:
         return Path(inputs)
+    from room_pipeline.paths import PatientPaths
+
     pdir = CACHE / "patient_000"
-    if not (pdir / "anatomy" / "lung_model.obj").exists():
+    if not PatientPaths(CACHE, "patient_000").mesh.exists():
         print(f"making inputs in {CACHE} (room run --until trajectory, subprocess) ...", flush=True)
         room = Path(sys.executable).parent / "room"
         subprocess.run([str(room), "run", "--until", "trajectory", f"output_dir={CACHE}"], check=True, cwd=ROOT)
@@ -156,8 +158,11 @@ def main() -> None:
     from room_pipeline.render.shading import auto_exposure_ev
 
     pdir = ensure_inputs(args.inputs)
-    mesh = read_obj(pdir / "anatomy" / "lung_model.obj")
-    traj = json.loads((pdir / "sequence_000" / "metadata" / "trajectory.json").read_text())
+    from room_pipeline.paths import PatientPaths
+
+    pp = PatientPaths(pdir.parent, pdir.name)
+    mesh = read_obj(pp.mesh)
+    traj = json.loads(pp.seq("sequence_000").trajectory.read_text())
     all_poses = np.array([f["pose"] for f in traj["frames"]])
     T = len(all_poses)
     print(f"inputs {pdir}: {mesh.n_faces} faces, {T} poses", flush=True)

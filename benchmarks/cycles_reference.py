@@ -85,9 +85,12 @@ def build_scene(pdir: Path, sequence: str, rp, res: int):
     from room_pipeline.render.params import camera_of, scene_parts
     from room_pipeline.render.sequence import face_labels, load_poses
 
-    mesh = read_obj(pdir / "anatomy" / "lung_model.obj")
-    graph = CentrelineGraph.from_dict(json.loads((pdir / "anatomy" / "centreline_graph.json").read_text()))
-    ts, poses = load_poses(pdir / sequence / "metadata", rp.poses)
+    from room_pipeline.paths import PatientPaths
+
+    pp = PatientPaths(pdir.parent, pdir.name)
+    mesh = read_obj(pp.mesh)
+    graph = CentrelineGraph.from_dict(json.loads(pp.centreline_graph.read_text()))
+    ts, poses = load_poses(pp.sequence_metadata(sequence), rp.poses)
     rp = dataclasses.replace(rp, width=res, height=res)
     cam = camera_of(rp)
     material, light, film = scene_parts(rp)

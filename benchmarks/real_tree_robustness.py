@@ -42,6 +42,7 @@ import numpy as np
 from scipy import ndimage
 
 from room_pipeline.io.volume import Volume, read_volume, write_nifti
+from room_pipeline.paths import PatientPaths
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _synthetic import REAL_MASKS  # noqa: E402
@@ -177,16 +178,16 @@ def _polyline_dist(p: np.ndarray, line: np.ndarray) -> float:
 
 
 def summarise(out: Path, rc: int, log: str, ref: dict | None, fmap) -> dict:
-    d = out / "bench"
+    pp = PatientPaths(out, "bench")
     stages = ["segment", "sdf", "mesh", "medial_axis", "trajectory", "simulate", "render"]
-    done = [s for s in stages if (d / "metrics" / (f"{s}_sequence_000.json" if s in ("trajectory", "simulate", "render")
-                                                   else f"{s}.json")).is_file()]
+    done = [s for s in stages if pp.stage_metrics(s, "sequence_000" if s in ("trajectory", "simulate", "render")
+                                                  else "").is_file()]
     row: dict = {"exit": rc, "stages_done": done}
     if rc != 0:
         err = [ln for ln in log.splitlines() if ln.startswith("room: error")]
         row["failed_stage"] = next((s for s in stages if s not in done), "?")
         row["message"] = (err[-1] if err else log.strip().splitlines()[-1] if log.strip() else "")[:400]
-    gpath = d / "anatomy" / "centreline_graph.json"
+    gpath = pp.centreline_graph
     if gpath.is_file():
         g = json.loads(gpath.read_text())
         br = {b["id"]: b for b in g["branches"]}
@@ -194,7 +195,10 @@ def summarise(out: Path, rc: int, log: str, ref: dict | None, fmap) -> dict:
         start, end = np.array(root["points"][0]), np.array(root["points"][-1])
         row.update(n_branches=len(br), max_generation=max(b["generation"] for b in br.values()),
                    root_start_mm=np.round(start / MM, 1).tolist(), root_length_mm=round(root["length"] / MM, 1))
-        rep = g.get("metadata", {}).get("report", {})
+        try:
+            rep = g["metadata"]["report"]       # the medial-axis stage's root report
+        except KeyError:
+            rep = {}
         for k in ("root_entry_bifurcation", "root_reselected", "root_centred", "trachea_aspect_ratio"):
             if k in rep:
                 row[k] = rep[k]
@@ -202,18 +206,18 @@ def summarise(out: Path, rc: int, log: str, ref: dict | None, fmap) -> dict:
             tr = fmap(np.array(ref["trachea"]))
             row["root_start_to_true_trachea_mm"] = round(_polyline_dist(start, tr) / MM, 1)
             row["root_end_to_true_carina_mm"] = round(float(np.linalg.norm(end - fmap(np.array(ref["carina"]))[0])) / MM, 1)
-    tpath = d / "sequence_000" / "metadata" / "trajectory.json"
+    tpath = pp.seq("sequence_000").trajectory
     if tpath.is_file() and gpath.is_file():
         t = json.loads(tpath.read_text())
         row["route_length_mm"] = round(t["summary"]["length_m"] / MM, 1)
         rb = t["summary"].get("route_branches", [])
         row["route_generation"] = max((br[b]["generation"] for b in rb if b in br), default=None)
         row["stop_reason"] = t.get("target", {}).get("stop_reason")
-    rpath = d / "metrics" / "render_sequence_000.json"
+    rpath = pp.stage_metrics("render", "sequence_000")
     if rpath.is_file():
         m = json.loads(rpath.read_text())
         row["render"] = {k: m[k] for k in m if k in ("frames", "hit_fraction", "frames_rendered")} or True
-    spath = d / "metrics" / "simulate_sequence_000.json"
+    spath = pp.stage_metrics("simulate", "sequence_000")
     if spath.is_file():
         m = json.loads(spath.read_text())
         row["simulate"] = {k: m[k] for k in m if not isinstance(m[k], (dict, list))}
@@ -229,7 +233,7 @@ def reference(out: Path) -> dict:
     top, then two terminal twigs (10.0 mm, radius 5.9 -> 1.6 mm; 9.6 mm) within 10 mm of the scan's top cut,
     where its lumen is one oblique tube in every slice, then a 78 mm trunk (median radius 7.0 mm) that divides
     into two subtrees: that end is the carina (the mask resampled to 1 mm roots down to within 5.6 mm of it)."""
-    g = json.loads((out / "bench" / "anatomy" / "centreline_graph.json").read_text())
+    g = json.loads(PatientPaths(out, "bench").centreline_graph.read_text())
     br = {b["id"]: b for b in g["branches"]}
     kids: dict = {}
     for b in g["branches"]:

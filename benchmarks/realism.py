@@ -51,11 +51,12 @@ CACHE = ROOT / "benchmarks" / ".cache" / "realism"
 
 
 def prepare(inputs: Path, mode: str, patient: str = "patient_000", seq: str = "sequence_000") -> Path:
+    from room_pipeline.paths import PatientPaths
+
     out = CACHE / mode            # one scratch output_dir per mode: --fit, --sweep and the score may run at once
-    need = [f"{patient}/anatomy/lung_model.obj", f"{patient}/anatomy/centreline_graph.json",
-            f"{patient}/{seq}/metadata/simulation.json"]
-    for rel in need:
-        src, dst = inputs / rel, out / rel
+    need = [lambda pp: pp.mesh, lambda pp: pp.centreline_graph, lambda pp: pp.seq(seq).simulation]
+    for path_of in need:
+        src, dst = path_of(PatientPaths(inputs, patient)), path_of(PatientPaths(out, patient))
         if not src.exists():
             sys.exit(f"realism.py: {src} missing: run `room run --until simulate output_dir={inputs}` first")
         if not dst.exists() or dst.stat().st_mtime < src.stat().st_mtime:
@@ -66,23 +67,24 @@ def prepare(inputs: Path, mode: str, patient: str = "patient_000", seq: str = "s
 
 def render(out: Path, overrides: list[str], stride: int, patient="patient_000", seq="sequence_000") -> dict:
     """Render (rgb only) + noise through the stages; returns timing and the noisy frame paths."""
+    from room_pipeline.catalog import SequencePaths
     from room_pipeline.config.compose import compose
     from room_pipeline.stages import noise as noise_stage
     from room_pipeline.stages import render as render_stage
 
     cfg = compose([f"output_dir={out}", f"render.frame_stride={stride}", "render.modalities=[rgb]",
                    "execution.workers=1", *overrides])
-    d = out / patient / seq
-    for sub in ("rgb", "rgb_noisy"):
-        shutil.rmtree(d / sub, ignore_errors=True)
+    sp = SequencePaths(out / patient / seq)
+    for folder in (sp.folder("rgb"), sp.rgb_noisy):
+        shutil.rmtree(folder, ignore_errors=True)
     t0, c0 = time.perf_counter(), time.process_time()
     m = render_stage.run(cfg, f"{patient}/{seq}")
     t1, c1 = time.perf_counter(), time.process_time()
     noise_stage.run(cfg, f"{patient}/{seq}")
-    meta = json.loads((d / "metadata" / "render.json").read_text())
+    meta = json.loads(sp.render_json.read_text())
     evs = meta["renderer"].get("auto_exposure", {}).get("frame_ev")
     return {"frames": m["frames"], "render_wall_s": round(t1 - t0, 2), "render_cpu_s": round(c1 - c0, 2),
-            "paths": sorted((d / "rgb_noisy").glob("*.png")), "frame_ev": evs}
+            "paths": sorted(sp.rgb_noisy.glob("*.png")), "frame_ev": evs}
 
 
 def score(paths, real_paths, noise=True) -> dict:

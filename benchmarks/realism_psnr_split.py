@@ -99,8 +99,12 @@ def main() -> None:
     ap.add_argument("--out", default="realism_psnr_split")
     args = ap.parse_args()
     args.ref_bounces, args.tile, args.grid_tiles = 8, 32, 4
-    if not Path(args.inputs, "anatomy", "lung_model.obj").exists():
-        print(f"realism_psnr_split: no anatomy/lung_model.obj under {args.inputs}", file=sys.stderr)
+    from room_pipeline.paths import PatientPaths
+
+    mesh_path = PatientPaths(Path(args.inputs).parent, Path(args.inputs).name).mesh
+    if not mesh_path.exists():
+        print(f"realism_psnr_split: no lumen mesh {mesh_path.relative_to(args.inputs)} under {args.inputs}",
+              file=sys.stderr)
         sys.exit(2)
     from realism_indirect import (grid_boxes, lumen_normals, metered_ev, one_view, psnr, reference, scene_and_views,
                                   to8)

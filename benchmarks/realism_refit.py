@@ -137,12 +137,13 @@ def noise_only(outs: dict, overrides: list[str], stride: int) -> None:
 
 def prepare_all(inputs: Path, scratch: Path) -> dict:
     """Copy the anatomy + simulation of both sequences (never the frames) into the scratch output_dir."""
+    from room_pipeline.paths import PatientPaths
+
     out = scratch / "synth_out"
     outs = {}
     for (pat, seq) in SEQS:
-        for rel in (f"{pat}/anatomy/lung_model.obj", f"{pat}/anatomy/centreline_graph.json",
-                    f"{pat}/{seq}/metadata/simulation.json"):
-            src, dst = inputs / rel, out / rel
+        for path_of in (lambda pp: pp.mesh, lambda pp: pp.centreline_graph, lambda pp: pp.seq(seq).simulation):
+            src, dst = path_of(PatientPaths(inputs, pat)), path_of(PatientPaths(out, pat))
             if not src.exists():
                 sys.exit(f"realism_refit.py: {src} missing: run `room run --until simulate output_dir={inputs}` first")
             if not dst.exists() or dst.stat().st_mtime < src.stat().st_mtime:

@@ -53,9 +53,12 @@ def main() -> None:
 
     pat = Path(a.inputs) / "patient_000"
     p = RenderParams.from_dict(compose([]).render)
-    mesh = read_obj(pat / "anatomy" / "lung_model.obj")
-    graph = CentrelineGraph.from_dict(json.loads((pat / "anatomy" / "centreline_graph.json").read_text()))
-    sim = json.loads((pat / "sequence_000" / "metadata" / "simulation.json").read_text())
+    from room_pipeline.paths import PatientPaths
+
+    pp = PatientPaths(pat.parent, pat.name)
+    mesh = read_obj(pp.mesh)
+    graph = CentrelineGraph.from_dict(json.loads(pp.centreline_graph.read_text()))
+    sim = json.loads(pp.seq("sequence_000").simulation.read_text())
     poses_all = np.array([f["tip_pose"] for f in sim["frames"]])
     idx = np.linspace(0, len(poses_all) - 1, a.frames).round().astype(int)
     cam = CameraIntrinsics.from_fov(p.width, p.height, p.fov_deg, p.near_mm * MM, p.far_mm * MM)

@@ -311,8 +311,7 @@ def test_stage_module_spells_no_dataset_or_metrics_name(module):
 
 #: benchmark scripts that other engineers edit in session 11: routed through the catalogue by the lead after merging
 #: (each still spells layout names; the test below fails once one is routed, so the list cannot go stale)
-ROUTED_AFTER_MERGE = {"cycles_quality.py", "cycles_reference.py", "real_tree_robustness.py", "realism.py",
-                      "realism_psnr_split.py", "realism_refit.py", "realism_speed.py"}
+ROUTED_AFTER_MERGE: set[str] = set()   # scripts another engineer was editing while the check came in
 
 
 def _path_like_names(path: Path, names: set[str]) -> list[str]:

@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from ..anatomy.centreline import CentrelineGraph
 from ..catalog import split_key
-from ..config.compose import section
+from ..config.compose import patient_entry, section
 from ..errors import ConfigError
 from ..io.atomic import write_json, write_text
 from ..io.volume import read_nifti_sdf
