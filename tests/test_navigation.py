@@ -441,7 +441,7 @@ def y_airway(r0=0.006, r1=0.0045, trunk=0.10, child=0.06, angle_deg=35.0, h=0.00
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("policy,target", [("oracle", 1), ("oracle", 2), ("depth", 2)])
+@pytest.mark.parametrize("policy,target", [("oracle", 1), ("oracle", 2), ("depth", 1), ("depth", 2)])
 def test_episode_through_a_bifurcation_reaches_the_commanded_child_without_contact_over_half_a_newton(policy, target):
     """The bifurcation case: a 12 mm trachea forking at +-35 deg into 9 mm children (the scope is 5 mm); the
     operator's word picks the child; the config's defaults (shaft lumen) reach it with no contact over 0.5 N."""

@@ -40,8 +40,10 @@ Depth target ``axis`` (:mod:`.axis`)
     on an estimated centreline).  Once the fork is at hand (split nearer than ``axis_lead_mm`` +
     ``lookahead_mm``) the chosen child's centre is held as a world point (from the scope's own pose, not the
     route) and picks the child in later frames until the tip passes it: a sibling seen sideways just past
-    the carina is not taken for the next fork.  ``sideways_deg`` > 0: the roll is not held near zero bending
-    for a target more than that off the held bending plane (held, the tip bent in the wrong plane).
+    the carina is not taken for the next fork.  ``sideways_deg`` > 0 (depth policy only): the roll is not held
+    near zero bending for a target more than that off the held bending plane (held, the tip bent in the wrong
+    plane; with it the oracle took a wrong branch on 3 of patient_000's 5 benchmark targets, so it keeps
+    the held roll).
     Logged per step: ``route_error_mm`` (tip to the route's centreline), ``trace_lag_mm`` (shaft path length
     minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip minus the arc model's tip).
 
@@ -140,14 +142,16 @@ class EpisodeParams:
     dark_quantile: float = 0.05         # darkest: pixels at or below this luminance quantile form the dark regions
     tip_control: str = "point"          # point: bend toward the look-ahead point; path: put the tip on the path;
                                         # aim: turn the view toward the point aim_mm along the plan / route / ray
-    depth_target: str = "plan"          # depth policy's tip target: plan (lookahead_mm along the plan) | free_centre
+    depth_target: str = "axis"          # depth policy's tip target: plan (lookahead_mm along the plan) | free_centre
                                         # (centre of the free lumen centre_depth_mm ahead, in the goal's opening)
     centre_depth_mm: float = 10.0
     axis_lead_mm: float = 6.0           # depth_target axis: the axis turns to the chosen child this far before the fork
     fork_slow_mm: float = 0.0           # depth_target axis: insert at fork_slow_factor of the speed while a fork is seen
     fork_slow_factor: float = 1.0       # ... nearer than this (0: off)
-    sideways_deg: float = 0.0           # point control: the roll is not held for a target more than this off the
-                                        # held bending plane (0: always held near zero bending)
+    sideways_deg: float = 45.0          # depth policy's point control: the roll is not held for a target more than
+                                        # this off the held bending plane (0: always held near zero bending; the
+                                        # oracle and darkest keep it held: with 45 the oracle took a wrong branch
+                                        # on 3 of patient_000's 5 benchmark targets)
     aim_mm: float = 20.0                # aim: how far along the plan / route / dark ray the view is turned to
     retract_force_n: float = 0.0        # > 0: retract while the last period's peak contact force exceeded this (N)
     retract_mm_s: float = 2.0           # ... at this speed
@@ -402,7 +406,8 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             else:
                 q_new = reach_command(tgt, trace.route.frame, q_prev, geometry, speed * ctrl_dt,
                                       sim_params.roll_hold_q1_fraction, sim_params.roll_free_q1_fraction,
-                                      preview_m=params.lookahead_mm * MM, sideways_rad=math.radians(params.sideways_deg))
+                                      preview_m=params.lookahead_mm * MM,
+                                      sideways_rad=math.radians(params.sideways_deg) if params.policy == "depth" else 0.0)
             q = rate_limit(q_new, q_prev, ctrl_dt, max_rate)
             c2 = time.process_time()
             signal.add(t + ctrl_dt, q)
