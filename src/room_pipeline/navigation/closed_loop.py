@@ -44,8 +44,10 @@ Depth target ``axis`` (:mod:`.axis`)
     near zero bending for a target more than that off the held bending plane (held, the tip bent in the wrong
     plane; with it the oracle took a wrong branch on 3 of patient_000's 5 benchmark targets, so it keeps
     the held roll).
-    Logged per step: ``route_error_mm`` (tip to the route's centreline), ``trace_lag_mm`` (shaft path length
-    minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip minus the arc model's tip).
+    Logged per step: ``route_error_mm`` (tip to the route's centreline), ``axis_target_mm`` /
+    ``axis_split_mm`` (depth_target axis: the target in the camera frame, the fork's depth),
+    ``trace_lag_mm`` (shaft path length minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip
+    minus the arc model's tip).
 
 Shaft
     ``shaft: lumen`` (default, :class:`LumenShaft`): the bending-segment base slides along the airway's
@@ -63,8 +65,10 @@ Shaft
 Policies
     ``depth``: depth map (ground truth: the ray caster's planar z; the upper bound of any estimator) ->
     point cloud -> :func:`~room_pipeline.navigation.planner.choose_goal` (farthest free point, in the
-    region the command points to) -> :func:`~room_pipeline.navigation.planner.plan_path` -> the tip target
-    is the plan's point ``lookahead_mm`` ahead with its tangent.  ``darkest``: the naive baseline: the RGB
+    region the command points to) -> :func:`~room_pipeline.navigation.planner.plan_path` (its collision
+    flag sets the insertion speed); the tip target is ``lookahead_mm`` along the lumen axis estimated from
+    the depth map (``depth_target: axis``, default, below; ``plan``: the plan's point ``lookahead_mm`` ahead,
+    last round's default; the axis falls back to it where no axis is found).  ``darkest``: the naive baseline: the RGB
     image (Lambertian tip-light shading, the render config's light), blurred; the darkest region (the
     lumen is dark), chosen by the command when several; steer along the ray through its centroid.
     ``oracle``: the centreline route of the graph to the target, the point ``lookahead_mm`` ahead of the
@@ -374,7 +378,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                     if ax is not None:
                         pa, ta = axis_target(ax, params.lookahead_mm * MM)
                         tgt, tan = tip[:3, :3] @ pa + p_tip, tip[:3, :3] @ ta
-                        info["axis_offset_mm"] = round(float(np.linalg.norm(pa - params.lookahead_mm * MM * ta)) * 1e3, 3)
+                        info["axis_target_mm"] = [round(float(x) * 1e3, 3) for x in pa]   # camera frame
                         info["axis_split_mm"] = None if ax.split_m is None else round(ax.split_m * 1e3, 1)
             else:
                 lum = eyes.luminance(tip)
