@@ -12,9 +12,9 @@ lumen the scope is in, e.g. a sibling seen sideways just past a carina), and the
 A cross-section touching the image border is cut by the field of view: its centre is biased toward the view
 axis (such centres are used only when every cross-section is cut and no fork is seen).  The axis (:class:`LumenAxis`
 ``polyline``): the parent lumen's centres from the first uncut cross-section on, up to ``lead_m`` before the
-fork (default 6 mm: the turn starts before the carina's tip, where the cross-sections part, as a centreline's
-branch point lies before it; a setting, not a measured offset), then the chosen child's centres; with no
-parent centre before that, straight from the camera to the child's centres.  :func:`axis_target` returns its
+fork (the closed loop's ``axis_lead_mm``, 15 mm: the turn starts before the carina's tip, where the
+cross-sections part, as a centreline's branch point lies before it; 15 measured better than 6 on the
+benchmark), then the chosen child's centres; with no parent centre before that, straight from the camera to the child's centres.  :func:`axis_target` returns its
 point ``lookahead_m`` beyond the camera's foot on it (the first centre when the camera is behind it): the
 depth-only counterpart of the oracle's target (``lookahead`` along the centreline route from the tip's nearest
 point), a point of the anatomy that pulls an off-axis tip back to the lumen's middle and turns it into the

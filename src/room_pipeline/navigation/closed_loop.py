@@ -149,7 +149,7 @@ class EpisodeParams:
     depth_target: str = "axis"          # depth policy's tip target: plan (lookahead_mm along the plan) | free_centre
                                         # (centre of the free lumen centre_depth_mm ahead, in the goal's opening)
     centre_depth_mm: float = 10.0
-    axis_lead_mm: float = 6.0           # depth_target axis: the axis turns to the chosen child this far before the fork
+    axis_lead_mm: float = 15.0          # depth_target axis: the axis turns to the chosen child this far before the fork
     fork_slow_mm: float = 0.0           # depth_target axis: insert at fork_slow_factor of the speed while a fork is seen
     fork_slow_factor: float = 1.0       # ... nearer than this (0: off)
     sideways_deg: float = 45.0          # depth policy's point control: the roll is not held for a target more than
