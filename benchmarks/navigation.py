@@ -6,7 +6,8 @@
 OUTPUT_DIR holds the patients' anatomy stages' outputs (``room run --patient ID --until medial_axis
 output_dir=OUTPUT_DIR``, or a full pipeline run).  For each patient of ``navigate.benchmark.patients``,
 ``targets_per_patient`` branches of generation ``target_generation`` are drawn (``seed``) among those whose whole
-route is at least ``min_route_radius_mm`` wide; every policy runs one episode per target
+route is at least ``min_route_radius_mm`` wide (another draw: the override ``navigate.benchmark.seed=N``, e.g. to
+check a change on targets it was not tuned on); every policy runs one episode per target
 (:func:`room_pipeline.navigation.closed_loop.run_episode`, config ``navigate.episode`` / ``navigate.planner`` /
 ``simulate``).  Reports success (target branch reached), time, tip path length, physics steps in contact, peak
 contact force, minimum distance from the scope's surface to the true lumen wall, generation reached, and CPU time

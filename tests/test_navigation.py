@@ -20,6 +20,7 @@ from room_pipeline.navigation.closed_loop import (EpisodeParams, Patient, check_
                                                   path_command, reach_command, run_episode, start_pose, Airways, Trace)
 from room_pipeline.navigation.shaft import LumenShaft
 from room_pipeline.navigation.tip_control import aim_command
+from room_pipeline.navigation.axis import axis_target, lumen_axis
 from room_pipeline.navigation.lumen import TrueLumen
 from room_pipeline.navigation.perception import back_project, median_scale
 from room_pipeline.navigation.planner import PlannerParams, choose_goal, free_centre, plan_path
@@ -285,6 +286,56 @@ def test_free_centre_points_back_to_the_lumen_axis_from_an_off_axis_camera():
         assert abs(c[0] + off) < (1e-4 if off == 0 else 2e-3) and (off == 0 or np.sign(c[0]) == -np.sign(off))
 
 
+def test_lumen_axis_target_pulls_an_off_axis_camera_back_to_the_axis():
+    """depth_target axis: in a 12 mm tube the free cross-sections' centres lie on the tube's axis (within 0.3 mm, 64 px)
+    seen from an axial camera and from cameras up to 3.5 mm off it; the target 4 mm along the axis from the
+    camera's foot (its first centre: nearer ones are cut by the field of view) is on the axis; a depth map without any hit (all 0) gives no axis."""
+    mesh, _ = tube(radius=0.006, straight=0.12)
+    for off in (0.0, 0.002, -0.0025, 0.0035):
+        P = pose_at(0.02)
+        P[0, 3] = off
+        d, cam = render_depth(mesh, P)
+        ax = lumen_axis(d, cam)
+        assert ax.split_m is None and ax.usable.sum() >= 5
+        assert np.abs(ax.centres[ax.usable][:, 0] + off).max() < 3e-4          # 64 px: a pixel is ~0.2 mm here
+        p, t = axis_target(ax, 0.004)
+        z0 = ax.centres[ax.usable][0, 2]                  # the camera is behind the axis's first centre
+        assert abs(p[0] + off) < 3e-4 and abs(p[1]) < 3e-4 and abs(p[2] - z0 - 0.004) < 3e-4 and t[2] > 0.99
+    assert lumen_axis(np.zeros((64, 64)), cam) is None
+
+
+def test_lumen_axis_takes_the_commanded_child_at_a_fork():
+    """Near the Y fork (trunk 12 mm, children 9 mm at +-35 deg in x) the cross-sections split: the command picks
+    the child on its side (left = -x in this camera) and the target turns toward it, unless a held point of the
+    other child (``prefer``, the closed loop's memory of its choice) is given; far from the fork (30 mm) no command
+    moves the target off the trunk's axis."""
+    mesh, _ = y_airway()
+    for z, sideways in ((0.07, False), (0.1, True)):
+        d, cam = render_depth(mesh, pose_at(z))
+        xs = []
+        for cmd in ((-1.0, 0.0), (1.0, 0.0)):
+            ax = lumen_axis(d, cam, cmd)
+            xs.append(axis_target(ax, 0.004)[0][0])
+        if sideways:
+            assert ax.split_m is not None and xs[0] < -1e-3 and xs[1] > 1e-3
+            held = lumen_axis(d, cam, (-1.0, 0.0), prefer=np.array([0.008, 0.0, 0.012]))   # a point in the +x child
+            assert axis_target(held, 0.004)[0][0] > 1e-3                                   # beats the command
+        else:
+            assert np.abs(xs).max() < 1e-4
+
+
+def test_sideways_target_frees_the_held_roll():
+    """Point control near zero bending holds the roll: a target 90 deg off the held bending plane is bent toward
+    in that plane's nearer half (the wrong plane); with sideways_rad the roll turns to the target's plane."""
+    g = ScopeGeometry()
+    tip = fk(np.array([-0.0004, math.pi / 2, 0.0]), geometry=g)[:3, 3]
+    held = reach_command(tip, lambda q3: pose_at(q3), np.zeros(3), g, 0.0, 0.05, 0.15)
+    free = reach_command(tip, lambda q3: pose_at(q3), np.zeros(3), g, 0.0, 0.05, 0.15, sideways_rad=math.radians(45))
+    assert held[1] == 0.0
+    assert free[1] == pytest.approx(math.pi / 2, abs=1e-3)
+    assert np.linalg.norm(fk(free, geometry=g)[:3, 3] - tip) < 1e-4 < np.linalg.norm(fk(held, geometry=g)[:3, 3] - tip)
+
+
 def test_lumen_shaft_follows_the_centreline_and_a_branch_change_keeps_the_base():
     """shaft lumen: the base rides on the (smoothed) centreline root -> the tip's branch; entering a child moves
     nothing that lies more than the smoothing's reach before the fork (the base is l = 50 mm behind the tip)."""
@@ -390,7 +441,7 @@ def y_airway(r0=0.006, r1=0.0045, trunk=0.10, child=0.06, angle_deg=35.0, h=0.00
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("policy,target", [("oracle", 1), ("oracle", 2), ("depth", 2)])
+@pytest.mark.parametrize("policy,target", [("oracle", 1), ("oracle", 2), ("depth", 1), ("depth", 2)])
 def test_episode_through_a_bifurcation_reaches_the_commanded_child_without_contact_over_half_a_newton(policy, target):
     """The bifurcation case: a 12 mm trachea forking at +-35 deg into 9 mm children (the scope is 5 mm); the
     operator's word picks the child; the config's defaults (shaft lumen) reach it with no contact over 0.5 N."""

@@ -29,9 +29,25 @@ Switches (default off; none measured better than the default over the benchmark'
     ``tip_control: aim``: :func:`~room_pipeline.navigation.tip_control.aim_command` turns the view toward the
     point ``aim_mm`` along the plan / route / ray (the bend set relative to the shaft); ``depth_target:
     free_centre``: the depth policy's tip target is :func:`~room_pipeline.navigation.planner.free_centre`
-    ``centre_depth_mm`` ahead (a point of the anatomy, not of the view).
-    Logged per step: ``route_error_mm`` (tip to the route's centreline), ``trace_lag_mm`` (shaft path length
-    minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip minus the arc model's tip).
+    ``centre_depth_mm`` ahead (a point of the anatomy, not of the view); ``fork_slow_mm`` > 0: insert at
+    ``fork_slow_factor`` of the speed while a fork is seen nearer than that (``depth_target: axis``).
+
+Depth target ``axis`` (:mod:`.axis`)
+    The lumen's axis estimated from the depth map alone: the centres of the free cross-sections ``depth > z``
+    at 1 mm steps of ``z``, the operator's command picking the child where they split (a split across the
+    command's direction is not the commanded fork: the opening straight ahead is kept); the tip target is
+    ``lookahead_mm`` along that axis from the camera's foot on it, a point of the anatomy (the oracle's rule
+    on an estimated centreline).  Once the fork is at hand (split nearer than ``axis_lead_mm`` +
+    ``lookahead_mm``) the chosen child's centre is held as a world point (from the scope's own pose, not the
+    route) and picks the child in later frames until the tip passes it: a sibling seen sideways just past
+    the carina is not taken for the next fork.  ``sideways_deg`` > 0 (depth policy only): the roll is not held
+    near zero bending for a target more than that off the held bending plane (held, the tip bent in the wrong
+    plane; with it the oracle took a wrong branch on 3 of patient_000's 5 benchmark targets, so it keeps
+    the held roll).
+    Logged per step: ``route_error_mm`` (tip to the route's centreline), ``axis_target_mm`` /
+    ``axis_split_mm`` (depth_target axis: the target in the camera frame, the fork's depth),
+    ``trace_lag_mm`` (shaft path length minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip
+    minus the arc model's tip).
 
 Shaft
     ``shaft: lumen`` (default, :class:`LumenShaft`): the bending-segment base slides along the airway's
@@ -49,8 +65,10 @@ Shaft
 Policies
     ``depth``: depth map (ground truth: the ray caster's planar z; the upper bound of any estimator) ->
     point cloud -> :func:`~room_pipeline.navigation.planner.choose_goal` (farthest free point, in the
-    region the command points to) -> :func:`~room_pipeline.navigation.planner.plan_path` -> the tip target
-    is the plan's point ``lookahead_mm`` ahead with its tangent.  ``darkest``: the naive baseline: the RGB
+    region the command points to) -> :func:`~room_pipeline.navigation.planner.plan_path` (its collision
+    flag sets the insertion speed); the tip target is ``lookahead_mm`` along the lumen axis estimated from
+    the depth map (``depth_target: axis``, default, below; ``plan``: the plan's point ``lookahead_mm`` ahead,
+    last round's default; the axis falls back to it where no axis is found).  ``darkest``: the naive baseline: the RGB
     image (Lambertian tip-light shading, the render config's light), blurred; the darkest region (the
     lumen is dark), chosen by the command when several; steer along the ray through its centroid.
     ``oracle``: the centreline route of the graph to the target, the point ``lookahead_mm`` ahead of the
@@ -95,6 +113,7 @@ from ..robot.sim_params import SimParams
 from .airways import COMMANDS, Airways, Patient, check_target, generation_targets, operator_command, start_pose  # noqa: F401
 from .lumen import TrueLumen
 from .perception import back_project
+from .axis import axis_target, lumen_axis
 from .planner import PlannerParams, choose_goal, free_centre, plan_path
 from .shaft import LumenShaft, Trace  # noqa: F401
 from .tip_control import _model_error, aim_command, path_command, reach_command  # noqa: F401
@@ -127,9 +146,16 @@ class EpisodeParams:
     dark_quantile: float = 0.05         # darkest: pixels at or below this luminance quantile form the dark regions
     tip_control: str = "point"          # point: bend toward the look-ahead point; path: put the tip on the path;
                                         # aim: turn the view toward the point aim_mm along the plan / route / ray
-    depth_target: str = "plan"          # depth policy's tip target: plan (lookahead_mm along the plan) | free_centre
+    depth_target: str = "axis"          # depth policy's tip target: plan (lookahead_mm along the plan) | free_centre
                                         # (centre of the free lumen centre_depth_mm ahead, in the goal's opening)
     centre_depth_mm: float = 10.0
+    axis_lead_mm: float = 15.0          # depth_target axis: the axis turns to the chosen child this far before the fork
+    fork_slow_mm: float = 0.0           # depth_target axis: insert at fork_slow_factor of the speed while a fork is seen
+    fork_slow_factor: float = 1.0       # ... nearer than this (0: off)
+    sideways_deg: float = 45.0          # depth policy's point control: the roll is not held for a target more than
+                                        # this off the held bending plane (0: always held near zero bending; the
+                                        # oracle and darkest keep it held: with 45 the oracle took a wrong branch
+                                        # on 3 of patient_000's 5 benchmark targets)
     aim_mm: float = 20.0                # aim: how far along the plan / route / dark ray the view is turned to
     retract_force_n: float = 0.0        # > 0: retract while the last period's peak contact force exceeded this (N)
     retract_mm_s: float = 2.0           # ... at this speed
@@ -142,18 +168,19 @@ class EpisodeParams:
         if self.policy not in POLICIES:
             raise ConfigError(f"navigate.episode.policy must be one of {POLICIES}, got {self.policy!r}")
         for name in ("control_rate_hz", "max_time_s", "speed_mm_s", "fov_deg", "lookahead_mm", "start_offset_mm",
-                     "wrong_branch_mm", "stall_time_s", "physics_step_s", "retract_mm_s", "aim_mm", "centre_depth_mm"):
+                     "wrong_branch_mm", "stall_time_s", "physics_step_s", "retract_mm_s", "aim_mm", "centre_depth_mm",
+                     "axis_lead_mm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"navigate.episode.{name} must be > 0, got {v!r}")
-        for name in ("wrong_branch_gap_mm", "retract_force_n"):
+        for name in ("wrong_branch_gap_mm", "retract_force_n", "sideways_deg", "fork_slow_mm", "fork_slow_factor"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"navigate.episode.{name} must be >= 0, got {v!r}")
         if self.tip_control not in ("point", "path", "aim"):
             raise ConfigError(f"navigate.episode.tip_control must be point, path or aim, got {self.tip_control!r}")
-        if self.depth_target not in ("plan", "free_centre"):
-            raise ConfigError(f"navigate.episode.depth_target must be plan or free_centre, got {self.depth_target!r}")
+        if self.depth_target not in ("plan", "free_centre", "axis"):
+            raise ConfigError(f"navigate.episode.depth_target must be plan, free_centre or axis, got {self.depth_target!r}")
         if self.shaft not in ("trace", "lumen"):
             raise ConfigError(f"navigate.episode.shaft must be trace or lumen, got {self.shaft!r}")
         if self.image_px < 8:
@@ -267,6 +294,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
         path_len = 0.0
         frames = []
         k = 0
+        hold = None                    # depth_target axis: world point in the child chosen at the fork at hand
         while t < params.max_time_s - 1e-9:
             tip = sim.tip_pose()
             if not np.all(np.isfinite(tip)):
@@ -337,6 +365,21 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                                     "goal_depth_mm": round(goal.depth * 1e3, 3), "regions": goal.regions}
                     if record_frames:
                         frames.append({"depth": depth, "plan": pl, "pose": tip.copy(), "goal": goal})
+                if params.depth_target == "axis":
+                    prefer = None if hold is None else tip[:3, :3].T @ (hold - p_tip)
+                    if prefer is not None and prefer[2] <= 0:
+                        hold = prefer = None                    # passed the held child's point: the fork is done
+                    ax = lumen_axis(depth, cam, COMMANDS.get(word) if word else None, lead_m=params.axis_lead_mm * MM,
+                                    prefer=prefer)
+                    if ax is not None and ax.split_m is not None and \
+                            ax.split_m <= (params.axis_lead_mm + params.lookahead_mm) * MM:
+                        ch = ax.centres[ax.centres[:, 2] >= ax.split_m]         # the fork is at hand: hold its child
+                        hold = tip[:3, :3] @ ch[min(3, len(ch) - 1)] + p_tip
+                    if ax is not None:
+                        pa, ta = axis_target(ax, params.lookahead_mm * MM)
+                        tgt, tan = tip[:3, :3] @ pa + p_tip, tip[:3, :3] @ ta
+                        info["axis_target_mm"] = [round(float(x) * 1e3, 3) for x in pa]   # camera frame
+                        info["axis_split_mm"] = None if ax.split_m is None else round(ax.split_m * 1e3, 1)
             else:
                 lum = eyes.luminance(tip)
                 c1 = time.process_time()
@@ -350,6 +393,9 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             # push at the insertion speed, bend the tip toward the target
             speed = params.speed_mm_s * MM * (1.0 if info.get("plan", {}) is None or
                                               (info.get("plan") or {}).get("free", True) else params.slow_factor)
+            if params.fork_slow_mm > 0 and info.get("axis_split_mm") is not None and \
+                    info["axis_split_mm"] <= params.fork_slow_mm:
+                speed *= params.fork_slow_factor             # a fork at hand: give the bend time to turn into it
             if params.retract_force_n > 0 and f_period > params.retract_force_n:
                 speed = -params.retract_mm_s * MM        # an operator backs off a pressing wall, then steers again
             if params.tip_control == "aim" and aim is not None:
@@ -364,7 +410,8 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             else:
                 q_new = reach_command(tgt, trace.route.frame, q_prev, geometry, speed * ctrl_dt,
                                       sim_params.roll_hold_q1_fraction, sim_params.roll_free_q1_fraction,
-                                      preview_m=params.lookahead_mm * MM)
+                                      preview_m=params.lookahead_mm * MM,
+                                      sideways_rad=math.radians(params.sideways_deg) if params.policy == "depth" else 0.0)
             q = rate_limit(q_new, q_prev, ctrl_dt, max_rate)
             c2 = time.process_time()
             signal.add(t + ctrl_dt, q)

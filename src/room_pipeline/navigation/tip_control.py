@@ -18,7 +18,7 @@ from ..robot.kinematics import ScopeGeometry
 
 def reach_command(target_world: np.ndarray, base_frame, q_prev: np.ndarray, geometry: ScopeGeometry,
                   advance_m: float, hold_fraction: float = 0.05, free_fraction: float = 0.15,
-                  preview_m: float = 0.0) -> np.ndarray:
+                  preview_m: float = 0.0, sideways_rad: float = 0.0) -> np.ndarray:
     """Joint command inserting ``advance_m`` more and bending the tip as near ``target_world`` as it can get
     once the insertion has gone ``preview_m`` further (the bend that will have brought the tip there).
 
@@ -27,8 +27,10 @@ def reach_command(target_world: np.ndarray, base_frame, q_prev: np.ndarray, geom
     (``t = theta = -q1 / (2 gamma)``; :mod:`room_pipeline.robot.kinematics`) in that frame: ``q2`` puts the
     bending plane through the target (``atan2(x, -y)``), ``theta`` (grid over ``[0, theta_max]``, 0.5 mrad)
     minimises the distance to it.  Near zero bending the roll is held (:func:`~room_pipeline.robot.controller.
-    regularise_roll`, the simulate config's fractions).  Insertion is commanded, the bend follows the target:
-    the position-only tip control of a follow-the-leader scope.
+    regularise_roll`, the simulate config's fractions), except (``sideways_rad`` > 0) for a target more than
+    ``sideways_rad`` off the held bending plane (either half): a held roll would bend the tip in the wrong plane.
+    Insertion is commanded, the bend follows the target: the position-only tip control of a follow-the-leader
+    scope.
     """
     q3 = float(q_prev[2]) + advance_m
     B = base_frame(float(q_prev[2]) + max(advance_m, preview_m))
@@ -39,19 +41,22 @@ def reach_command(target_world: np.ndarray, base_frame, q_prev: np.ndarray, geom
     lat = l * np.where(th > 1e-9, (1 - np.cos(th)) / np.maximum(th, 1e-12), 0.0)
     ax = l * np.where(th > 1e-9, np.sin(th) / np.maximum(th, 1e-12), 1.0)
     theta = float(th[np.argmin((lat - r) ** 2 + (ax - z) ** 2)])
-    return _bend_command(theta, float(t[0]), float(t[1]), q_prev, q3, geometry, hold_fraction, free_fraction)
+    return _bend_command(theta, float(t[0]), float(t[1]), q_prev, q3, geometry, hold_fraction, free_fraction,
+                         sideways_rad)
 
 
 def _bend_command(theta: float, x: float, y: float, q_prev: np.ndarray, q3: float, geometry: ScopeGeometry,
-                  hold_fraction: float, free_fraction: float) -> np.ndarray:
+                  hold_fraction: float, free_fraction: float, sideways_rad: float = 0.0) -> np.ndarray:
     """Joints bending the segment by ``theta`` (rad) toward the base-frame direction (``x``, ``y``): q2 the
     roll nearest ``q_prev``'s that points the bend there (kept when the direction is the axis), q1 clipped to
-    its limit, the roll held near zero bending (:func:`regularise_roll`)."""
+    its limit, the roll held near zero bending (:func:`regularise_roll`) unless ``sideways_rad`` > 0 and the
+    direction lies more than that off the held plane (its nearer half)."""
     r = math.hypot(x, y)
     q2 = float(q_prev[1]) + _wrap(math.atan2(x, -y) - float(q_prev[1])) if r > 1e-9 else float(q_prev[1])
     q = np.array([-2.0 * geometry.gamma * theta, q2, q3])
     q[0] = max(-geometry.q1_max, min(geometry.q1_max, q[0]))
-    if hold_fraction > 0 or free_fraction > 0:
+    off = math.acos(min(1.0, abs(math.cos(q2 - float(q_prev[1])))))     # angle to the held plane, [0, pi/2]
+    if (hold_fraction > 0 or free_fraction > 0) and not (sideways_rad > 0 and r > 1e-9 and off > sideways_rad):
         q = regularise_roll(q, float(q_prev[1]), geometry.q1_max, hold_fraction, free_fraction, project=False)
     return q
 
