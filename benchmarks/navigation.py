@@ -32,7 +32,9 @@ sys.path.insert(0, str(ROOT / "src"))
 
 from room_pipeline.config.compose import compose, section  # noqa: E402
 from room_pipeline.navigation.cli import load_patient, params_from  # noqa: E402
-from room_pipeline.navigation.closed_loop import generation_targets, run_episode  # noqa: E402
+from room_pipeline.navigation.airways import draw_targets  # noqa: E402
+from room_pipeline.navigation.closed_loop import run_episode  # noqa: E402
+from room_pipeline.navigation.params import BenchmarkParams  # noqa: E402
 
 FIELDS = ("success", "outcome", "time_s", "path_length_mm", "contact_steps", "peak_contact_force_n",
           "min_wall_clearance_mm", "generation_reached")
@@ -67,23 +69,21 @@ def main(argv=None) -> int:
     ap.add_argument("--merge", nargs="+", help="combine these result JSONs (runs over other patients) into --name")
     args, overrides = ap.parse_known_args(argv)
     cfg = compose(overrides)
-    bench = section(cfg, "navigate")["benchmark"]
+    bench = BenchmarkParams.from_dict(section(cfg, "navigate").get("benchmark"))
     planner, ep, sim = params_from(cfg)
     if args.max_time_s:
         ep = dataclasses.replace(ep, max_time_s=args.max_time_s)
-    n_t = args.targets_per_patient or int(bench["targets_per_patient"])
-    policies = args.policies.split(",") if args.policies else list(bench["policies"])
+    n_t = args.targets_per_patient or bench.targets_per_patient
+    policies = args.policies.split(",") if args.policies else list(bench.policies)
     rows, plan = [], []
     if args.merge:
         docs = [json.loads(Path(m).read_text()) for m in args.merge]
         rows = [r for d in docs for r in d["episodes"]]
         plan = list({t["patient"]: t for d in docs for t in d["targets"]}.values())   # one entry a patient
-    patients = [] if args.merge else (args.patients.split(",") if args.patients else list(bench["patients"]))
+    patients = [] if args.merge else (args.patients.split(",") if args.patients else list(bench.patients))
     for pid in patients:
         patient = load_patient(Path(args.output_dir), pid)
-        elig = generation_targets(patient.graph, int(bench["target_generation"]), float(bench["min_route_radius_mm"]))
-        rng = np.random.default_rng(int(bench["seed"]))
-        pick = sorted(rng.choice(elig, size=min(n_t, len(elig)), replace=False).tolist()) if elig else []
+        elig, pick = draw_targets(patient.graph, bench.target_generation, bench.min_route_radius_mm, n_t, bench.seed)
         plan.append({"patient": pid, "eligible": elig, "targets": pick})
         for target in pick:
             for pol in policies:

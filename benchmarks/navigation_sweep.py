@@ -39,6 +39,7 @@ sys.path.insert(0, str(ROOT / "src"))
 
 from room_pipeline.config.compose import compose, section  # noqa: E402
 from room_pipeline.errors import RoomError  # noqa: E402
+from room_pipeline.navigation.params import BenchmarkParams, EpisodeParams  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 KEEP = ("patient", "target", "outcome", "success", "time_s", "path_length_mm", "peak_contact_force_n",
@@ -112,16 +113,15 @@ def _smoke_patient():
 
 
 def _patients(cfg, output_dir: Path, names: list[str], n_targets: int) -> dict:
+    from room_pipeline.navigation.airways import draw_targets
     from room_pipeline.navigation.cli import load_patient
-    from room_pipeline.navigation.closed_loop import generation_targets
 
-    bench = section(cfg, "navigate").get("benchmark", {})
+    bench = BenchmarkParams.from_dict(section(cfg, "navigate").get("benchmark"))
     out = {}
     for name in names:
         p = load_patient(output_dir, name)
-        elig = generation_targets(p.graph, int(bench["target_generation"]), float(bench["min_route_radius_mm"]))
-        rng = np.random.default_rng(int(bench["seed"]))
-        out[name] = (p, sorted(rng.choice(elig, size=min(n_targets, len(elig)), replace=False).tolist()) if elig else [])
+        out[name] = (p, draw_targets(p.graph, bench.target_generation, bench.min_route_radius_mm, n_targets,
+                                     bench.seed)[1])
     return out
 
 
@@ -204,7 +204,7 @@ def main(argv=None) -> int:
             else:
                 if not args.output_dir:
                     ap.error("--output-dir (the patients' anatomy) or --collect or --smoke required")
-                names = args.patients.split(",") if args.patients else list(section(cfg, "navigate")["benchmark"]["patients"])
+                names = args.patients.split(",") if args.patients else list(BenchmarkParams.from_dict(section(cfg, "navigate").get("benchmark")).patients)
                 pats = _patients(cfg, Path(args.output_dir), names, args.targets_per_patient)
             rows = []
             for d in args.depth.split(","):
@@ -217,7 +217,7 @@ def main(argv=None) -> int:
                             print(f"{name} target {t} depth {d} noise {n:g}: {r['outcome']} "
                                   f"({1e3 * r['cpu_per_step_s']['total']:.0f} ms CPU/step)", flush=True)
                             rows.append(r)
-            max_t = section(cfg, "navigate")["episode"]["max_time_s"]
+            max_t = EpisodeParams.from_dict(section(cfg, "navigate").get("episode")).max_time_s
             what = (f"{'smoke: straight tube' if args.smoke else ', '.join(pats)}; "
                     f"{sum(len(t) for _, t in pats.values())} target(s) per cell, max {max_t:g} s per episode")
     except RoomError as exc:

@@ -47,7 +47,8 @@ TABLE = [
     ("room_pipeline.depth.cnn", "CNNParams", "depth/default.yaml", "cnn"),
     ("room_pipeline.depth.cnn", "TrainParams", "depth/default.yaml", "train"),
     ("room_pipeline.navigation.planner", "PlannerParams", "navigate/default.yaml", "planner"),
-    ("room_pipeline.navigation.closed_loop", "EpisodeParams", "navigate/default.yaml", "episode"),
+    ("room_pipeline.navigation.params", "EpisodeParams", "navigate/default.yaml", "episode"),
+    ("room_pipeline.navigation.params", "BenchmarkParams", "navigate/default.yaml", "benchmark"),
     ("room_pipeline.navigation.depth_source", "NavPerception", "navigate/default.yaml", ""),
 ]
 

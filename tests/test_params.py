@@ -163,6 +163,27 @@ def test_navigate_section_is_perception_plus_its_subsections():
             NavPerception.from_navigate({key: bad})
 
 
+def test_navigate_benchmark_and_episode_read_without_the_physics():
+    """``room navigate`` / the navigation benchmarks read ``navigate.episode`` and ``navigate.benchmark`` through
+    the one reader, from a module that does not import PyBullet (closed_loop re-exports EpisodeParams)."""
+    import subprocess
+    import sys
+
+    from room_pipeline.navigation import closed_loop
+    from room_pipeline.navigation.params import BenchmarkParams, EpisodeParams
+
+    assert closed_loop.EpisodeParams is EpisodeParams
+    assert BenchmarkParams.from_dict({"seed": 1, "policies": ["depth"]}) == BenchmarkParams(seed=1, policies=("depth",))
+    for key, bad, msg in (("min_route_radius_mm", 0.0, "min_route_radius_mm"), ("policies", ["walk"], "policies"),
+                          ("seed", "1", "navigate.benchmark.seed"), ("targets", 3, "navigate.benchmark.targets")):
+        with pytest.raises(ConfigError, match=msg):
+            BenchmarkParams.from_dict({key: bad})
+    code = ("import sys, room_pipeline.navigation.params, room_pipeline.navigation.cli; "
+            "print(any(m.startswith('pybullet') for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", check=True)
+    assert out.stdout.strip() == "False"
+
+
 def _old_segment_params(d: dict) -> SegmentParams:
     """The hand-rolled reader SegmentParams.from_dict had until session 10 (its conversions, then validate)."""
     names = {f.name: f for f in dataclasses.fields(SegmentParams)}

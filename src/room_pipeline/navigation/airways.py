@@ -85,6 +85,17 @@ def generation_targets(graph: CentrelineGraph, generation: int, min_radius_mm: f
     return sorted(out)
 
 
+def draw_targets(graph: CentrelineGraph, generation: int, min_radius_mm: float, n: int, seed: int
+                 ) -> tuple[list[int], list[int]]:
+    """(eligible, drawn): the :func:`generation_targets` and ``n`` of them drawn without replacement by a
+    ``numpy.random.default_rng(seed)`` (sorted; all of them when fewer are eligible): the navigation
+    benchmark's targets (``navigate.benchmark``)."""
+    elig = generation_targets(graph, generation, min_radius_mm)
+    rng = np.random.default_rng(seed)
+    pick = sorted(rng.choice(elig, size=min(n, len(elig)), replace=False).tolist()) if elig else []
+    return elig, pick
+
+
 def check_target(graph: CentrelineGraph, target: int) -> None:
     ids = {b.id for b in graph.branches}
     if target not in ids:

@@ -56,7 +56,7 @@ def load_patient(output_dir: Path, patient: str):
 def params_from(cfg):
     """(PlannerParams, EpisodeParams, SimParams) of a composed config."""
     from ..robot.sim_params import SimParams
-    from .closed_loop import EpisodeParams
+    from .params import EpisodeParams
     from .planner import PlannerParams
 
     nav = _section(cfg, "navigate")
@@ -118,15 +118,13 @@ def cmd_episode(args) -> int:
 
     nav = _section(cfg, "navigate")           # the estimator too is checked before the physics is imported
     perc = NavPerception.from_navigate(nav)
-    epd = dict(nav.get("episode") or {})
-    src = None
-    if (args.policy or epd.get("policy", "depth")) == "depth":
-        src = make_depth_source(perc, _section(cfg, "depth"), _section(cfg, "noise"),
-                                loop_camera(int(epd.get("image_px", 64)), float(epd.get("fov_deg", 85.0))),
-                                Path(args.output_dir))
     planner, ep, sim = params_from(cfg)
     if args.policy:
         ep = dataclasses.replace(ep, policy=args.policy)
+    src = None
+    if ep.policy == "depth":
+        src = make_depth_source(perc, _section(cfg, "depth"), _section(cfg, "noise"),
+                                loop_camera(ep.image_px, ep.fov_deg), Path(args.output_dir))
     from .closed_loop import run_episode
 
     res = run_episode(patient, args.target, ep, planner, sim, depth_source=src)
@@ -141,10 +139,12 @@ def cmd_episode(args) -> int:
 def cmd_targets(args) -> int:
     from .airways import generation_targets
 
+    from .params import BenchmarkParams
+
     cfg = _cfg(args.overrides)
-    bench = _section(cfg, "navigate").get("benchmark", {})
+    bench = BenchmarkParams.from_dict(_section(cfg, "navigate").get("benchmark"))
     patient = load_patient(Path(args.output_dir), args.patient)
-    ids = generation_targets(patient.graph, args.generation, float(bench.get("min_route_radius_mm", 3.0)))
+    ids = generation_targets(patient.graph, args.generation, bench.min_route_radius_mm)
     print(" ".join(str(i) for i in ids))
     return 0
 
