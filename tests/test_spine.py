@@ -309,11 +309,6 @@ def test_stage_module_spells_no_dataset_or_metrics_name(module):
                 f"stages/{module}: write_metrics names stage {ast.unparse(stage)}, not '{path.stem}'"
 
 
-#: benchmark scripts that other engineers edit in session 11: routed through the catalogue by the lead after merging
-#: (each still spells layout names; the test below fails once one is routed, so the list cannot go stale)
-ROUTED_AFTER_MERGE: set[str] = set()   # scripts another engineer was editing while the check came in
-
-
 def _path_like_names(path: Path, names: set[str]) -> list[str]:
     """Layout names in the path-like string literals of ``path``: a literal that is a layout name, or has no
     whitespace and a ``/``-separated part that is one (``"*/metadata/render.json"``).  Prose (literals with
@@ -345,9 +340,6 @@ def test_benchmarks_and_scripts_find_dataset_files_through_the_catalogue(script)
     """Benchmarks and scripts build every dataset path through room_pipeline.catalog / paths: no layout name is
     a path-like literal in them (they rotted when the layout moved: issue #14)."""
     found = _path_like_names(REPO / script, _layout_names())
-    if Path(script).name in ROUTED_AFTER_MERGE:
-        assert found, f"{script} no longer spells layout names: drop it from ROUTED_AFTER_MERGE"
-        pytest.skip(f"{script}: edited by another engineer this round; routed after merging ({found})")
     assert not found, f"{script} spells dataset names (take them from room_pipeline.catalog / paths): {found}"
 
 
