@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Is the suite slower at one commit than at another?  Per-test durations of two pytest JUnit XML files.
 
-    python scripts/compare_test_durations.py A.xml B.xml [--min-s 0.05]
+    python scripts/compare_test_durations.py A.xml B.xml [--min-s 0.05] [--cpu]
 
 Make the two files on one machine at similar load, each from a fresh clone of its commit, e.g.
 ``CI=true pytest -m "not slow" --junitxml=A.xml`` at the older commit and ``--junitxml=B.xml`` at the newer,
@@ -10,7 +10,9 @@ tests present (same node id) and passed in both files are compared, so tests add
 commits do not count as speed.  Printed: the number of common tests, their summed seconds in A and B and
 the ratio B / A, the median of the per-test ratios (over tests of at least ``--min-s`` seconds in A), and
 the ten tests that slowed most.  Durations are pytest's wall times (setup + call + teardown of each test,
-as JUnit records them), not CPU times: a loaded machine inflates both runs.
+as JUnit records them), not CPU times: a loaded machine inflates both runs.  With ``--cpu`` the per-test
+CPU seconds that ``scripts/pytest_cpu_times.py`` records (run pytest with ``-p pytest_cpu_times`` and
+``scripts`` on ``PYTHONPATH``) are compared instead: much less sensitive to a shared machine.
 """
 from __future__ import annotations
 
@@ -21,8 +23,9 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 
-def durations(path: Path) -> dict[str, float]:
-    """node id (``classname::name``) -> seconds of each passed test case in a JUnit XML file."""
+def durations(path: Path, cpu: bool = False) -> dict[str, float]:
+    """node id (``classname::name``) -> seconds of each passed test case in a JUnit XML file (wall, or the
+    ``cpu_s`` property with ``cpu``)."""
     try:
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError) as exc:
@@ -32,7 +35,16 @@ def durations(path: Path) -> dict[str, float]:
     for case in root.iter("testcase"):
         if any(case.find(tag) is not None for tag in ("failure", "error", "skipped")):
             continue
-        out[f"{case.get('classname', '')}::{case.get('name', '')}"] = float(case.get("time") or 0.0)
+        if cpu:
+            prop = case.find("properties/property[@name='cpu_s']")
+            if prop is None:
+                print(f"room: error: {path}: test case {case.get('name')} has no cpu_s property (run pytest with "
+                      "-p pytest_cpu_times)", file=sys.stderr)
+                raise SystemExit(2)
+            seconds = float(prop.get("value"))
+        else:
+            seconds = float(case.get("time") or 0.0)
+        out[f"{case.get('classname', '')}::{case.get('name', '')}"] = seconds
     return out
 
 
@@ -52,8 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("a", type=Path, help="JUnit XML of the older commit")
     ap.add_argument("b", type=Path, help="JUnit XML of the newer commit")
     ap.add_argument("--min-s", type=float, default=0.05, help="tests shorter than this in A leave the median out")
+    ap.add_argument("--cpu", action="store_true", help="compare the cpu_s property (pytest_cpu_times) instead")
     args = ap.parse_args(argv)
-    r = compare(durations(args.a), durations(args.b), args.min_s)
+    r = compare(durations(args.a, args.cpu), durations(args.b, args.cpu), args.min_s)
     if not r["common"]:
         print(f"room: error: {args.a} and {args.b} have no passed test in common", file=sys.stderr)
         return 2
