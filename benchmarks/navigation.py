@@ -32,7 +32,8 @@ sys.path.insert(0, str(ROOT / "src"))
 
 from room_pipeline.config.compose import compose, section  # noqa: E402
 from room_pipeline.navigation.cli import load_patient, params_from  # noqa: E402
-from room_pipeline.navigation.airways import draw_targets  # noqa: E402
+from room_pipeline.navigation import diagnose  # noqa: E402
+from room_pipeline.navigation.airways import Airways, draw_targets  # noqa: E402
 from room_pipeline.navigation.closed_loop import run_episode  # noqa: E402
 from room_pipeline.navigation.params import BenchmarkParams  # noqa: E402
 
@@ -67,6 +68,8 @@ def main(argv=None) -> int:
     ap.add_argument("--name", default="navigation")
     ap.add_argument("--patients", help="comma-separated subset of navigate.benchmark.patients")
     ap.add_argument("--merge", nargs="+", help="combine these result JSONs (runs over other patients) into --name")
+    ap.add_argument("--trace", action="store_true", help="for every wrong-branch episode, the fork, the class of the "
+                    "failure and its last steps (navigation/diagnose.py) into benchmarks/results/NAME_trace.md")
     args, overrides = ap.parse_known_args(argv)
     cfg = compose(overrides)
     bench = BenchmarkParams.from_dict(section(cfg, "navigate").get("benchmark"))
@@ -75,7 +78,7 @@ def main(argv=None) -> int:
         ep = dataclasses.replace(ep, max_time_s=args.max_time_s)
     n_t = args.targets_per_patient or bench.targets_per_patient
     policies = args.policies.split(",") if args.policies else list(bench.policies)
-    rows, plan = [], []
+    rows, plan, traces = [], [], []
     if args.merge:
         docs = [json.loads(Path(m).read_text()) for m in args.merge]
         rows = [r for d in docs for r in d["episodes"]]
@@ -89,7 +92,11 @@ def main(argv=None) -> int:
             for pol in policies:
                 w0, c0 = time.time(), time.process_time()
                 res = run_episode(patient, int(target), dataclasses.replace(ep, policy=pol), planner, sim)
-                res.pop("log")
+                log = res.pop("log")
+                if args.trace and res["outcome"] == "wrong_branch":
+                    tr = diagnose.trace(Airways(patient.graph), int(target), log)
+                    res["failure"] = None if tr is None else {k: tr[k] for k in tr if k != "steps"}
+                    traces.append((res, tr))
                 res["wall_s"] = time.time() - w0
                 res["cpu_s"] = time.process_time() - c0
                 res["load_avg_1min"] = os.getloadavg()[0]
@@ -110,11 +117,39 @@ def main(argv=None) -> int:
     res_dir.mkdir(parents=True, exist_ok=True)
     (res_dir / f"{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
     md = table(doc)
+    if args.trace:
+        (res_dir / f"{args.name}_trace.md").write_text(trace_table(doc["command"], traces))
     (res_dir / f"{args.name}.md").write_text(md)
     (ROOT / "reports").mkdir(exist_ok=True)
     (ROOT / "reports" / f"{args.name}.md").write_text(md)
     print(md)
     return 0
+
+
+def trace_table(command: str, traces: list) -> str:
+    """Markdown: per wrong-branch episode, its fork, class and last steps (navigation/diagnose.py)."""
+    L = [f"# Wrong-branch traces (`{command}`)", "", "Class: `target_in_wrong_child` (the axis target lay nearer the "
+         "wrong child on most of the last 10 steps with a split seen), `late_turn` (nearer the right child, the tip "
+         "entered the wrong one anyway), `no_fork_seen` (no split reported while commanded). Sides: distance to the "
+         "wrong child's centreline minus to the right child's (mm; > 0 = the right child's side); tip off = tip to "
+         "the route's centreline (mm). Uses the graph: diagnostic only, the policy never sees it.", ""]
+    for res, tr in traces:
+        if tr is None:
+            L += [f"## {res['patient']} target {res['target']}: left the route off any fork of it", ""]
+            continue
+        L += [f"## {res['patient']} target {res['target']}: fork at branch {tr['parent']} (generation "
+              f"{tr['generation']} children), right {tr['right']}, wrong {tr['wrong']}, entered at {tr['entry_t']:.1f} s:"
+              f" **{tr['class']}**", "", "| t (s) | branch | command | split (mm) | tip side | target side | tip off "
+              "| force (N) | openings at the split (u, v, px; pick; held) |", "|---|---|---|---|---|---|---|---|---|"]
+        L += [f"| {r['t']:.1f} | {r['branch']} | {r['command']} | {r['split_mm']} | {r['tip_side_mm']} | "
+              f"{r['target_side_mm']} | {r['tip_off_mm']} | {r['force_n']} | {_openings(r['openings'])} |" for r in tr["steps"]]
+        L.append("")
+    return "\n".join(L)
+
+
+def _openings(o) -> str:
+    return "-" if not o else " ".join(f"({u:.0f},{v:.0f},{n})" for u, v, n in o["uv_px"]) + \
+        f"; {o['pick']}{'; held' if o['held'] else ''}"
 
 
 def table(doc: dict) -> str:

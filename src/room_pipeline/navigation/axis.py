@@ -38,24 +38,30 @@ _EIGHT = np.ones((3, 3), bool)
 class LumenAxis:
     """centres: (K, 3) cross-section centres (camera frame, m), nearest first; usable: (K,) not cut by the
     field of view; split_m: planar depth of the first fork on the chosen way (None: no fork seen);
-    polyline: (M, 3) the axis from the camera's plane on (see :func:`lumen_axis`)."""
+    polyline: (M, 3) the axis from the camera's plane on (see :func:`lumen_axis`); openings: (u, v, pixels)
+    of the openings at that fork (image centroid), pick: the index of the chosen one (None without a fork),
+    pick_by: what chose it (held | command | centre | deepest)."""
 
     centres: np.ndarray
     usable: np.ndarray
     split_m: float | None
     polyline: np.ndarray
+    openings: list | None = None
+    pick: int | None = None
+    pick_by: str | None = None
 
 
 def lumen_axis(depth: np.ndarray, camera: CameraIntrinsics, command=None, step_m: float = 1e-3,
                lead_m: float = 6e-3, min_px: int = 4, min_share: float = 0.1,
-               prefer: np.ndarray | None = None) -> LumenAxis | None:
+               prefer: np.ndarray | None = None, hold_tol_m: float | None = None) -> LumenAxis | None:
     """The local lumen axis seen in ``depth`` ((H, W) planar depth, m; 0 = no hit); None when no parent
     cross-section is usable and no fork is seen.  ``command``: unit image direction (u right, v down) picking
     the child at a fork (without one, the deepest); ``prefer`` (camera-frame point, m, ahead of the camera):
     at a fork, the child whose image centroid is nearest its projection wins instead (the caller's memory of
     the child it chose in earlier frames); components of fewer than ``min_px`` pixels or ``min_share``
     of the largest are not openings; ``step_m``: spacing of the cross-sections; ``lead_m``: see the module
-    docstring."""
+    docstring; ``hold_tol_m`` (None: off): a ``prefer`` point nearer than the split minus this is ignored: it
+    lies before the fork, in the parent lumen (a point held at an earlier fork), and picks no child of this one."""
     d = np.asarray(depth, dtype=np.float64)
     d = np.where(np.isfinite(d) & (d > 0), d, np.inf)
     fin = d[np.isfinite(d)]
@@ -66,7 +72,7 @@ def lumen_axis(depth: np.ndarray, camera: CameraIntrinsics, command=None, step_m
     q = camera.rays_at(np.stack([uu, vv], axis=-1).astype(np.float64))[..., :2]   # (H, W, 2) x/z, y/z
     top = float(np.quantile(fin, 0.98)) if np.isinf(d).sum() == 0 else float(fin.max()) + step_m
     chosen = np.ones((h, w), bool)
-    cents, usable, split = [], [], None
+    cents, usable, split, openings, pick_i, pick_by = [], [], None, None, None, None
     for z in np.arange(step_m, top, step_m):
         hole = (d > z) & chosen
         lab, n = ndimage.label(hole, structure=_EIGHT)
@@ -77,22 +83,25 @@ def lumen_axis(depth: np.ndarray, camera: CameraIntrinsics, command=None, step_m
         if not keep:
             break
         if len(keep) > 1:
-            if split is None:
-                split = float(z)
             uv = np.array([[uu[lab == k + 1].mean(), vv[lab == k + 1].mean()] for k in keep])
-            if prefer is not None and prefer[2] > 0:               # hold the child chosen before
+            by = None
+            if prefer is not None and prefer[2] > 0 and (hold_tol_m is None or prefer[2] >= z - hold_tol_m):
                 pu, pv = camera.project_normalized(prefer[0] / prefer[2], prefer[1] / prefer[2])
-                pick = keep[int(np.argmin(((uv - [pu, pv]) ** 2).sum(axis=1)))]
+                pick, by = keep[int(np.argmin(((uv - [pu, pv]) ** 2).sum(axis=1)))], "held"  # the child chosen before
             elif command is not None:
                 cmd = np.asarray(command, float)
                 i = int(np.argmax((uv - uv.mean(axis=0)) @ cmd))
                 gap = uv[i] - np.delete(uv, i, axis=0).mean(axis=0)
                 if gap @ cmd >= 0.5 * np.linalg.norm(gap):          # the openings part the commanded way
-                    pick = keep[i]
+                    pick, by = keep[i], "command"
                 else:              # they part across it: not the commanded fork; stay in the lumen straight ahead
-                    pick = keep[int(np.argmin(((uv - [camera.cx, camera.cy]) ** 2).sum(axis=1)))]
+                    pick, by = keep[int(np.argmin(((uv - [camera.cx, camera.cy]) ** 2).sum(axis=1)))], "centre"
             else:
-                pick = keep[int(np.argmax([d[lab == k + 1].max() for k in keep]))]
+                pick, by = keep[int(np.argmax([d[lab == k + 1].max() for k in keep]))], "deepest"
+            if split is None:
+                split = float(z)
+                openings = [[round(float(a), 1), round(float(b), 1), int(sizes[k])] for (a, b), k in zip(uv, keep)]
+                pick_i, pick_by = keep.index(pick), by
         else:
             pick = keep[0]
         chosen = lab == pick + 1
@@ -114,7 +123,8 @@ def lumen_axis(depth: np.ndarray, camera: CameraIntrinsics, command=None, step_m
     if not parent.any() and not len(child):
         return None
     start = C[parent] if parent.any() else np.zeros((1, 3))
-    return LumenAxis(centres=C, usable=U, split_m=split, polyline=np.vstack([start, child]))
+    return LumenAxis(centres=C, usable=U, split_m=split, polyline=np.vstack([start, child]), openings=openings,
+                     pick=pick_i, pick_by=pick_by)
 
 
 def axis_target(axis: LumenAxis, lookahead_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -44,7 +44,17 @@ Depth target ``axis`` (:mod:`.axis`)
     near zero bending for a target more than that off the held bending plane (held, the tip bent in the wrong
     plane; with it the oracle took a wrong branch on 3 of patient_000's 5 benchmark targets, so it keeps
     the held roll).
-    Logged per step: ``route_error_mm`` (tip to the route's centreline), ``axis_target_mm`` /
+    ``fork_child_mm`` (default 40; 0 = session 11's rule above): as soon as the commanded fork is seen nearer
+    than this (a split the word parts its way, or the child held from it), the chosen child's centre 3 mm past
+    the split is held (every frame) and is itself the tip target, instead of ``lookahead_mm`` along the axis:
+    an operator steers for the commanded opening as soon as it shows, not when the carina is at the tip.
+    Traced (benchmarks/navigation.py ``--trace``, :mod:`.diagnose`), the 4 mm look-ahead on an axis that turns
+    only at the fork moved the tip across too late, from a tip already 2-4 mm off the route on the parent's
+    flared cross-sections.  While held and no commanded split is seen in a frame, the held point stays the
+    target (no flicker back to the axis); a held point that lies before a newly seen split (in the parent
+    lumen: an earlier fork's) no longer picks that fork's child (``lumen_axis(hold_tol_m=1 mm)``): traced, a
+    point held from the main carina picked the child against the next fork's command.
+    Logged per step: ``tip_mm`` / ``target_mm`` (world), ``route_error_mm`` (tip to the route's centreline), ``axis_target_mm`` /
     ``axis_split_mm`` (depth_target axis: the target in the camera frame, the fork's depth),
     ``trace_lag_mm`` (shaft path length minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip
     minus the arc model's tip).
@@ -296,17 +306,28 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                     prefer = None if hold is None else tip[:3, :3].T @ (hold - p_tip)
                     if prefer is not None and prefer[2] <= 0:
                         hold = prefer = None                    # passed the held child's point: the fork is done
+                    fc = params.fork_child_mm * MM
                     ax = lumen_axis(depth, cam, COMMANDS.get(word) if word else None, lead_m=params.axis_lead_mm * MM,
-                                    prefer=prefer)
-                    if ax is not None and ax.split_m is not None and \
-                            ax.split_m <= (params.axis_lead_mm + params.lookahead_mm) * MM:
+                                    prefer=prefer, hold_tol_m=1e-3 if fc > 0 else None)
+                    near = fc > 0 and ax is not None and ax.split_m is not None and ax.split_m <= fc and \
+                        ax.pick_by in ("held", "command")                   # the commanded fork is seen
+                    if near or (fc == 0 and ax is not None and ax.split_m is not None and
+                                ax.split_m <= (params.axis_lead_mm + params.lookahead_mm) * MM):
                         ch = ax.centres[ax.centres[:, 2] >= ax.split_m]         # the fork is at hand: hold its child
-                        hold = tip[:3, :3] @ ch[min(3, len(ch) - 1)] + p_tip
+                        child_c = ch[min(3, len(ch) - 1)]
+                        hold = tip[:3, :3] @ child_c + p_tip
                     if ax is not None:
                         pa, ta = axis_target(ax, params.lookahead_mm * MM)
+                        if near:                     # steer for the chosen child's centre itself (see fork_child_mm)
+                            pa, ta = child_c, child_c / np.linalg.norm(child_c)
+                        elif fc > 0 and prefer is not None:      # no commanded split this frame: the held child
+                            pa, ta = prefer, prefer / np.linalg.norm(prefer)
                         tgt, tan = tip[:3, :3] @ pa + p_tip, tip[:3, :3] @ ta
                         info["axis_target_mm"] = [round(float(x) * 1e3, 3) for x in pa]   # camera frame
                         info["axis_split_mm"] = None if ax.split_m is None else round(ax.split_m * 1e3, 1)
+                        if ax.openings:
+                            info["axis_openings"] = {"uv_px": ax.openings, "pick": ax.pick, "by": ax.pick_by,
+                                                     "held": prefer is not None}
             else:
                 lum = eyes.luminance(tip)
                 c1 = time.process_time()
@@ -363,6 +384,8 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             info["q_cmd"] = [round(float(x), 7) for x in q]
             info["force_n"] = round(f, 5)
             info["wall_clearance_mm"] = round((float((-sd).min()) - sim.radius) * 1e3, 3)
+            info["tip_mm"] = [round(float(x) * 1e3, 3) for x in p_tip]        # world, for traces (not the policy's)
+            info["target_mm"] = [round(float(x) * 1e3, 3) for x in tgt]
             log.append(info)
             t += ctrl_dt
             k += 1

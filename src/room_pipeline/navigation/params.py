@@ -45,6 +45,8 @@ class EpisodeParams:
                                         # (centre of the free lumen centre_depth_mm ahead, in the goal's opening)
     centre_depth_mm: float = 10.0
     axis_lead_mm: float = 15.0          # depth_target axis: the axis turns to the chosen child this far before the fork
+    fork_child_mm: float = 40.0         # depth_target axis: while the commanded fork is seen nearer than this, the
+                                        # tip target is the chosen child's centre (0: off; see closed_loop)
     fork_slow_mm: float = 0.0           # depth_target axis: insert at fork_slow_factor of the speed while a fork is seen
     fork_slow_factor: float = 1.0       # ... nearer than this (0: off)
     sideways_deg: float = 45.0          # depth policy's point control: the roll is not held for a target more than
@@ -68,7 +70,7 @@ class EpisodeParams:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"navigate.episode.{name} must be > 0, got {v!r}")
-        for name in ("wrong_branch_gap_mm", "retract_force_n", "sideways_deg", "fork_slow_mm", "fork_slow_factor"):
+        for name in ("wrong_branch_gap_mm", "retract_force_n", "sideways_deg", "fork_slow_mm", "fork_child_mm", "fork_slow_factor"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"navigate.episode.{name} must be >= 0, got {v!r}")
