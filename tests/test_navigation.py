@@ -510,3 +510,33 @@ def test_episode_in_a_straight_tube_reaches_the_target_without_contact_over_half
     assert res["generation_reached"] == 1
     again = run_episode(pat, 1, EpisodeParams(policy=policy, max_time_s=30.0), PlannerParams(), SimParams())
     assert again["time_s"] == res["time_s"] and again["path_length_mm"] == res["path_length_mm"]
+
+
+def test_diagnose_finds_the_fork_and_classes_a_wrong_branch_episode():
+    """navigation/diagnose.py (benchmarks/navigation.py --trace): on a Y graph (trunk 0 along +z to 100 mm, children
+    1 (-x) and 2 (+x) at +-35 deg), an episode toward child 1 whose tip ends in child 2 left the route at the fork
+    0 -> 1 / 2; the target on child 2's side over the last steps with a split seen is ``target_in_wrong_child``, on
+    child 1's side ``late_turn``; no split seen at all is ``no_fork_seen``; an episode that stays on the route has
+    no fork."""
+    from room_pipeline.navigation import diagnose
+
+    s = np.arange(0.0, 0.1001, 1e-3)
+    top, a = np.array([0.0, 0.0, 0.1]), math.radians(35)
+    u = np.linspace(0, 1, 61)[:, None]
+    kids = [GraphBranch(i + 1, 0, 1, top + u * 0.06 * np.array([sx * math.sin(a), 0.0, math.cos(a)]), np.full(61, 0.0045))
+            for i, sx in enumerate((-1.0, 1.0))]
+    air = Airways(CentrelineGraph([GraphBranch(0, -1, 0, np.stack([0 * s, 0 * s, s], 1), np.full(len(s), 0.006))] + kids))
+
+    def log(target_x, split=20.0):
+        out = []
+        for k, z in enumerate(np.arange(60.0, 112.0, 1.0)):
+            tip = [0.0, 0.0, z] if z <= 100 else [(z - 100) * math.tan(a), 0.0, z]     # into child 2 (+x)
+            out.append({"t": k * 0.1, "branch": air.locate(np.array(tip) * 1e-3)[0], "command": "left",
+                        "axis_split_mm": split, "tip_mm": tip, "target_mm": [target_x, 0.0, z + 8], "force_n": 0.0})
+        return out
+
+    wrong = diagnose.trace(air, 1, log(3.0))
+    assert (wrong["parent"], wrong["right"], wrong["wrong"]) == (0, 1, 2) and wrong["class"] == "target_in_wrong_child"
+    assert diagnose.trace(air, 1, log(-3.0))["class"] == "late_turn"
+    assert diagnose.trace(air, 1, log(3.0, split=None))["class"] == "no_fork_seen"
+    assert diagnose.trace(air, 2, log(3.0)) is None
