@@ -1,7 +1,7 @@
 """Closed-loop navigation benchmark (issue #19): vision policies vs the centreline oracle.
 
     python benchmarks/navigation.py --output-dir OUTPUT_DIR [--targets-per-patient N] [--policies depth,oracle,darkest]
-                                    [--max-time-s S] [overrides ...]
+                                    [--max-time-s S] [--trace] [overrides ...]
 
 OUTPUT_DIR holds the patients' anatomy stages' outputs (``room run --patient ID --until medial_axis
 output_dir=OUTPUT_DIR``, or a full pipeline run).  For each patient of ``navigate.benchmark.patients``,
@@ -12,7 +12,9 @@ check a change on targets it was not tuned on); every policy runs one episode pe
 ``simulate``).  Reports success (target branch reached), time, tip path length, physics steps in contact, peak
 contact force, minimum distance from the scope's surface to the true lumen wall, generation reached, and CPU time
 per control step (render + plan + simulate 0.1 s), next to the wall time and the load average (the machine is
-shared: CPU time is the figure).  Writes benchmarks/results/navigation.{md,json} and reports/navigation.md.
+shared: CPU time is the figure).  Writes benchmarks/results/navigation.{md,json} and reports/navigation.md;
+``--trace``: also NAME_trace.md, every wrong-branch episode's fork, failure class and last steps
+(:mod:`room_pipeline.navigation.diagnose`; the classified causes so far: benchmarks/results/navigation_failures.md).
 """
 from __future__ import annotations
 
