@@ -315,10 +315,8 @@ class Radiosity:
         drawn with the density of each vertex's hat function (module docstring, "Patch means"); seeded."""
         f = self.faces
         order = np.argsort(f.reshape(-1), kind="stable")              # corners grouped by vertex
-        corner_v = f.reshape(-1)[order]
-        start = np.searchsorted(corner_v, np.arange(len(self.vertices) + 1))
-        w = self.face_area[order // 3]
-        cw = np.cumsum(w)
+        start = np.searchsorted(f.reshape(-1)[order], np.arange(len(self.vertices) + 1))
+        cw = np.cumsum(self.face_area[order // 3])
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), e - s, int(k), 7]))
         v = np.arange(s, e)
         lo, hi = start[v], start[v + 1]
@@ -334,11 +332,8 @@ class Radiosity:
         li = rng.beta(2.0, 2.0, size=(len(v), k))                      # density prop. to lambda_i on the triangle
         t = rng.random((len(v), k))
         tri = f[face]                                                  # (n, K, 3)
-        lam = np.empty(tri.shape)
-        lam[...] = ((1 - li) * t)[..., None]
-        rest = (1 - li) * (1 - t)
-        nxt = (slot + 1) % 3
-        np.put_along_axis(lam, nxt[..., None], rest[..., None], axis=2)
+        lam = np.repeat(((1 - li) * t)[..., None], 3, axis=2)
+        np.put_along_axis(lam, ((slot + 1) % 3)[..., None], ((1 - li) * (1 - t))[..., None], axis=2)
         np.put_along_axis(lam, slot[..., None], li[..., None], axis=2)
         p = np.einsum("nkc,nkcd->nkd", lam, self.vertices[tri])
         n = np.einsum("nkc,nkcd->nkd", lam, self.normals[tri])         # interpolated, into the lumen
