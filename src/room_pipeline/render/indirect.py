@@ -62,7 +62,9 @@ Patch means (``IndirectConfig.patch``)
     rays of vertex ``i`` start at points drawn with density ``phi_i`` (a triangle of the one-ring by area,
     ``lambda_i ~ Beta(2, 2)`` in it; the interpolated normal there), and the tip light's irradiance is
     integrated over the one-ring (sub-triangle centroids where the field is not near-linear).  The classic
-    radiosity method's patch average, on the vertices' hat functions.
+    radiosity method's patch average, on the vertices' hat functions.  Against the 1024-spp Cycles reference
+    'direct' gains 2.4 dB at patient_000's bifurcation but loses 1.1 dB on patient_001's trachea (its far
+    walls, already too bright): off by default (benchmarks/results/cycles_residual_s12*.md).
 
 What it leaves out: the glossy lobe's direction (its share is re-emitted as if diffuse where it is kept),
 the irradiance's variation inside a triangle beyond linear interpolation, and the texture's
