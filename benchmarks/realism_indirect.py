@@ -405,7 +405,8 @@ def speed(scene, views, names, args) -> None:
         for nb, k in grid:
             rp = render_params_default({k_: json.loads(v) for k_, v in (x.split("=", 1) for x in args.set)})
             cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k,
-                                                                               caustics=rp.indirect_caustics),
+                                                                               caustics=rp.indirect_caustics,
+                                                                               patch=rp.indirect_patch),
                                 edge_samples=rp.edge_samples, edge_depth_jump=rp.edge_depth_jump)
             rc = RaycastRenderer(sc, cfg)
             b0 = time.process_time()
@@ -424,7 +425,8 @@ def speed(scene, views, names, args) -> None:
                 wall.append(time.perf_counter() - w0)
             m0 = time.process_time()
             raw_exposures(sc, exposure_params(rp), args.threads,
-                          IndirectConfig(bounces=nb, rays_per_point=k, caustics=rp.indirect_caustics) if nb else None)
+                          IndirectConfig(bounces=nb, rays_per_point=k, caustics=rp.indirect_caustics,
+                                         patch=rp.indirect_patch) if nb else None)
             meter = time.process_time() - m0
             rows.append({"view": n, "bounces": nb, "rays_per_point": k, "cpu_s": float(np.median(cpu)),
                          "wall_s": float(np.median(wall)), "indirect_wall_s": float(rc.timings["indirect"]),

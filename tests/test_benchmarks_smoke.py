@@ -76,6 +76,7 @@ SMOKE = {
     "cycles_quality.py": (["--quick"], ("bpy", "run")),
     "cycles_reference.py": (["--quick"], ("bpy", "run")),
     "cycles_residual.py": (["--quick", "--direct"], ("bpy", "run")),
+    "realism_indirect_pt.py": (["--quick", "--patch", "vertex,direct"], ("run",)),
 }
 
 #: scripts without a smoke mode (yet) -> why

@@ -46,6 +46,7 @@ class RenderParams:
     indirect_seed: int = 0
     indirect_shadows: bool = True
     indirect_caustics: bool = False
+    indirect_patch: str = "vertex"
     direct_shadows: bool = False
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
@@ -164,7 +165,8 @@ def indirect_config(p: "RenderParams"):
     from .indirect import IndirectConfig
 
     return IndirectConfig(bounces=p.indirect_bounces, rays_per_point=p.indirect_rays_per_point,
-                          seed=p.indirect_seed, shadows=p.indirect_shadows, caustics=p.indirect_caustics)
+                          seed=p.indirect_seed, shadows=p.indirect_shadows, caustics=p.indirect_caustics,
+                          patch=p.indirect_patch)
 
 
 def raycast_config(p: "RenderParams", nthreads: int = 0):
