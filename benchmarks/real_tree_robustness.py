@@ -327,6 +327,12 @@ def main() -> None:
             if case == "original" and row.get("exit") == 0 and (cdir / "out").is_dir():
                 row["reference"] = reference(cdir / "out")       # (the rule below may be newer than the cache)
                 row["reference_passed_bifurcations"] = row["reference"]["passed_bifurcations"]
+                # the pipeline's own root on the uncut mask against the reference carina: > 0 when the graph's
+                # first bifurcation is a terminal twig above the carina (CASE091, CASE073)
+                g0 = json.loads(PatientPaths(cdir / "out", "bench").centreline_graph.read_text())
+                end0 = np.array(next(b for b in g0["branches"] if b["parent"] == -1)["points"][-1])
+                row["root_end_to_true_carina_mm"] = round(float(np.linalg.norm(
+                    end0 - np.array(row["reference"]["carina"]))) / MM, 1)
             if case == "original":
                 ref = row.get("reference")
                 if ref is None:
@@ -346,7 +352,8 @@ def write_tables(rows: list[dict], args) -> None:
              "start->trachea: the root's first point's distance from the original mask's trachea centreline; "
              "end->carina: the root's last point (first bifurcation) from the original's carina (its first "
              "bifurcation at which both children divide on; passing a terminal twig beside a dividing sibling: "
-             "`reference()`).", "",
+             "`reference()`); on an original row, its own root's end from that carina (0.0: the graph's first bifurcation "
+             "is the carina; more: it stops at a terminal twig above it).", "",
              "| mask | case | shape | spacing mm | exit | root start->trachea mm | root end->carina mm | root mm | "
              "entry bif. | route mm | route gen. | tree gen. | failed stage: message | CPU s |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
