@@ -114,6 +114,7 @@ def check_view(sc, cfg, spp: int, stride: int, seed: int = 7) -> dict:
 def main() -> None:
     import cycles_reference as cr
     from room_pipeline.render.params import raycast_config
+    from room_pipeline.render.indirect import IndirectConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", action="append", help="PATIENT_DIR:view,view (repeatable)")
@@ -134,6 +135,13 @@ def main() -> None:
     for spec in args.views:
         if not Path(spec.rsplit(":", 1)[0]).is_dir():
             print(f"realism_indirect_pt: no patient folder {spec.rsplit(':', 1)[0]}", file=sys.stderr)
+            sys.exit(2)
+    for mode in args.patch.split(","):
+        try:                                                        # MODE@L: a patch mode, max_edge_mm L
+            pm, _, edge = mode.partition("@")
+            IndirectConfig(patch=pm, max_edge_mm=float(edge) if edge else 0.0)
+        except ValueError as e:
+            print(f"realism_indirect_pt: bad --patch {mode!r}: {e}", file=sys.stderr)
             sys.exit(2)
     rp = cr.render_params()
     rows = []
