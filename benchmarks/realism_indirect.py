@@ -406,7 +406,8 @@ def speed(scene, views, names, args) -> None:
             rp = render_params_default({k_: json.loads(v) for k_, v in (x.split("=", 1) for x in args.set)})
             cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k,
                                                                                caustics=rp.indirect_caustics,
-                                                                               patch=rp.indirect_patch),
+                                                                               patch=rp.indirect_patch,
+                                                                               max_edge_mm=rp.indirect_max_edge_mm),
                                 edge_samples=rp.edge_samples, edge_depth_jump=rp.edge_depth_jump)
             rc = RaycastRenderer(sc, cfg)
             b0 = time.process_time()
@@ -426,12 +427,14 @@ def speed(scene, views, names, args) -> None:
             m0 = time.process_time()
             raw_exposures(sc, exposure_params(rp), args.threads,
                           IndirectConfig(bounces=nb, rays_per_point=k, caustics=rp.indirect_caustics,
-                                         patch=rp.indirect_patch) if nb else None)
+                                         patch=rp.indirect_patch, max_edge_mm=rp.indirect_max_edge_mm)
+                          if nb else None)
             meter = time.process_time() - m0
             rows.append({"view": n, "bounces": nb, "rays_per_point": k, "cpu_s": float(np.median(cpu)),
                          "wall_s": float(np.median(wall)), "indirect_wall_s": float(rc.timings["indirect"]),
                          "meter_cpu_s_incl_build": meter, "build_cpu_s": build, "res": args.res,
-                         "n_vertices": int(sc.mesh.n_vertices)})
+                         "n_vertices": int(sc.mesh.n_vertices),
+                         "n_transport_points": int(len(rc.radiosity.vertices)) if nb else 0})
             print(json.dumps(rows[-1]), flush=True)
     doc = {"args": vars(args), "rows": rows, "load_avg": os.getloadavg(), "nproc": os.cpu_count()}
     RESULTS.mkdir(parents=True, exist_ok=True)

@@ -114,11 +114,13 @@ def check_view(sc, cfg, spp: int, stride: int, seed: int = 7) -> dict:
 def main() -> None:
     import cycles_reference as cr
     from room_pipeline.render.params import raycast_config
+    from room_pipeline.render.indirect import IndirectConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", action="append", help="PATIENT_DIR:view,view (repeatable)")
     ap.add_argument("--sequence", default="sequence_000")
-    ap.add_argument("--patch", default="vertex,direct", help="IndirectConfig.patch modes to compare")
+    ap.add_argument("--patch", default="vertex,direct", help="IndirectConfig.patch modes to compare; "
+                    "MODE@L: with max_edge_mm L (the transport on the mesh refined to edges <= L mm)")
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--stride", type=int, default=4, help="every n-th pixel of the 200x200 frame")
     ap.add_argument("--threads", type=int, default=2)
@@ -134,6 +136,13 @@ def main() -> None:
         if not Path(spec.rsplit(":", 1)[0]).is_dir():
             print(f"realism_indirect_pt: no patient folder {spec.rsplit(':', 1)[0]}", file=sys.stderr)
             sys.exit(2)
+    for mode in args.patch.split(","):
+        try:                                                        # MODE@L: a patch mode, max_edge_mm L
+            pm, _, edge = mode.partition("@")
+            IndirectConfig(patch=pm, max_edge_mm=float(edge) if edge else 0.0)
+        except ValueError as e:
+            print(f"realism_indirect_pt: bad --patch {mode!r}: {e}", file=sys.stderr)
+            sys.exit(2)
     rp = cr.render_params()
     rows = []
     for spec in args.views:
@@ -144,7 +153,9 @@ def main() -> None:
             sc = cr.view_scene(scene, views[name])
             for mode in args.patch.split(","):
                 cfg = raycast_config(rp, args.threads)
-                cfg = dataclasses.replace(cfg, indirect=dataclasses.replace(cfg.indirect, patch=mode))
+                pm, _, edge = mode.partition("@")                   # "vertex@1.0": max_edge_mm 1.0
+                cfg = dataclasses.replace(cfg, indirect=dataclasses.replace(
+                    cfg.indirect, patch=pm, max_edge_mm=float(edge) if edge else cfg.indirect.max_edge_mm))
                 r = check_view(sc, cfg, args.spp, args.stride)
                 r.update({"patient": Path(pdir).name, "view": name, "pose": views[name], "patch": mode})
                 rows.append(r)

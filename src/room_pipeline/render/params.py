@@ -47,6 +47,7 @@ class RenderParams:
     indirect_shadows: bool = True
     indirect_caustics: bool = False
     indirect_patch: str = "vertex"
+    indirect_max_edge_mm: float = 0.0
     direct_shadows: bool = False
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
@@ -166,7 +167,7 @@ def indirect_config(p: "RenderParams"):
 
     return IndirectConfig(bounces=p.indirect_bounces, rays_per_point=p.indirect_rays_per_point,
                           seed=p.indirect_seed, shadows=p.indirect_shadows, caustics=p.indirect_caustics,
-                          patch=p.indirect_patch)
+                          patch=p.indirect_patch, max_edge_mm=p.indirect_max_edge_mm)
 
 
 def raycast_config(p: "RenderParams", nthreads: int = 0):
