@@ -47,7 +47,7 @@ class RenderParams:
     indirect_shadows: bool = True
     indirect_caustics: bool = False
     indirect_patch: str = "vertex"
-    indirect_max_edge_mm: float = 0.0
+    indirect_max_edge_mm: float = 2.0
     direct_shadows: bool = False
     light_power_w: float = 0.02
     light_radius_mm: float = 0.5
