@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Is the suite slower at one commit than at another?  Per-test durations of two pytest JUnit XML files.
 
-    python scripts/compare_test_durations.py A.xml B.xml [--min-s 0.05] [--cpu]
+    python scripts/compare_test_durations.py A.xml[,A2.xml...] B.xml[,B2.xml...] [--min-s 0.05] [--cpu] [--by-file N]
 
 Make the two files on one machine at similar load, each from a fresh clone of its commit, e.g.
 ``CI=true pytest -m "not slow" --junitxml=A.xml`` at the older commit and ``--junitxml=B.xml`` at the newer,
@@ -12,7 +12,9 @@ the ratio B / A, the median of the per-test ratios (over tests of at least ``--m
 the ten tests that slowed most.  Durations are pytest's wall times (setup + call + teardown of each test,
 as JUnit records them), not CPU times: a loaded machine inflates both runs.  With ``--cpu`` the per-test
 CPU seconds that ``scripts/pytest_cpu_times.py`` records (run pytest with ``-p pytest_cpu_times`` and
-``scripts`` on ``PYTHONPATH``) are compared instead: much less sensitive to a shared machine.
+``scripts`` on ``PYTHONPATH``) are compared instead: much less sensitive to a shared machine.  Several files per
+side (comma-separated): each test's smallest time over them (repeated runs; the minimum is the least disturbed).
+``--by-file N``: the N test files whose summed time grew most.
 """
 from __future__ import annotations
 
@@ -48,6 +50,13 @@ def durations(path: Path, cpu: bool = False) -> dict[str, float]:
     return out
 
 
+def durations_min(paths: str, cpu: bool = False) -> dict[str, float]:
+    """Comma-separated JUnit files -> each test's smallest time over the files it passed in all of."""
+    runs = [durations(Path(p), cpu) for p in paths.split(",") if p]
+    common = set.intersection(*(set(r) for r in runs)) if runs else set()
+    return {t: min(r[t] for r in runs) for t in common}
+
+
 def compare(a: dict[str, float], b: dict[str, float], min_s: float) -> dict:
     common = sorted(set(a) & set(b))
     sum_a, sum_b = sum(a[t] for t in common), sum(b[t] for t in common)
@@ -61,12 +70,14 @@ def compare(a: dict[str, float], b: dict[str, float], min_s: float) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("a", type=Path, help="JUnit XML of the older commit")
-    ap.add_argument("b", type=Path, help="JUnit XML of the newer commit")
+    ap.add_argument("a", help="JUnit XML of the older commit (comma-separated: repeated runs, minimum taken)")
+    ap.add_argument("b", help="JUnit XML of the newer commit (likewise)")
     ap.add_argument("--min-s", type=float, default=0.05, help="tests shorter than this in A leave the median out")
     ap.add_argument("--cpu", action="store_true", help="compare the cpu_s property (pytest_cpu_times) instead")
+    ap.add_argument("--by-file", type=int, default=0, metavar="N", help="also the N files that grew most")
     args = ap.parse_args(argv)
-    r = compare(durations(args.a, args.cpu), durations(args.b, args.cpu), args.min_s)
+    da, db = durations_min(args.a, args.cpu), durations_min(args.b, args.cpu)
+    r = compare(da, db, args.min_s)
     if not r["common"]:
         print(f"room: error: {args.a} and {args.b} have no passed test in common", file=sys.stderr)
         return 2
@@ -76,6 +87,16 @@ def main(argv: list[str] | None = None) -> int:
     print("slowed most (test, A s, B s):")
     for t, sa, sb in r["slowed"]:
         print(f"  {t}  {sa:.2f}  {sb:.2f}")
+    if args.by_file:
+        files: dict[str, list] = {}
+        for t in set(da) & set(db):
+            f = files.setdefault(t.split("::")[0], [0, 0.0, 0.0])
+            f[0] += 1
+            f[1] += da[t]
+            f[2] += db[t]
+        print("files that grew most (file, tests, A s, B s):")
+        for f, (n, sa, sb) in sorted(files.items(), key=lambda kv: kv[1][1] - kv[1][2])[:args.by_file]:
+            print(f"  {f}  {n}  {sa:.1f}  {sb:.1f}")
     return 0
 
 
