@@ -143,3 +143,37 @@ def test_open3d_is_imported_by_its_adapter_only():
     hits = [str(p.relative_to(src)) for p in src.rglob("*.py")
             if re.search(r"^\s*(import open3d|from open3d)", p.read_text(), re.M)]
     assert hits == ["geometry/open3d_adapter.py"], hits
+
+
+def test_misses_that_move_between_rounds_back_the_reduction_off(monkeypatch):
+    """A quadric collapse is global: protecting one round's few misses can let a new miss appear elsewhere
+    (AirQuant's render mesh missed 0.2 mm at 43, 2, 1, 2, 1 points in five rounds and was left undecimated).
+    From round LOCAL_ONLY_ROUNDS on, a local round also reduces less everywhere, so a reduction the bound
+    allows is found.  Simulated: a miss at a new place in every round until the kept fraction reaches 0.6."""
+    from room_pipeline.anatomy import decimate as D
+
+    m = tube(wobble=0.1)
+    n = m.n_faces
+    targets = []
+
+    def fake_quadric(mesh, target, opts, protect):
+        targets.append(target)
+        return Mesh(mesh.vertices, mesh.faces[:target])    # the fake error below decides
+
+    def fake_error(a, b, n_samples=0, seed=0):
+        k = len(targets)
+        kept = targets[-1] / n
+        miss = 0.0 if kept >= 0.6 else 0.25
+        pts = a.vertices[:1000]
+        d = np.zeros(len(pts))
+        d[(37 * k) % len(pts)] = miss * 1e-3                  # one point, somewhere new each round
+        return {"a_pts": pts, "a_to_b": d, "b_pts": pts, "b_to_a": np.zeros(len(pts)), "max_mm": miss, "p95_mm": 0.0,
+                "a_to_b_max_mm": miss, "b_to_a_max_mm": 0.0}
+
+    monkeypatch.setattr(D, "_quadric", fake_quadric)
+    monkeypatch.setattr(D, "two_sided_error", fake_error)
+    _, r = D.decimate_under_bound(m, 0.25, 0.2, max_rounds=5, require_closed=False)
+    assert "note" not in r and r["rounds"] <= 5
+    kept = [t / n for t in targets]
+    assert kept[1] == pytest.approx(kept[0], abs=0.05)            # round 2: local protection only
+    assert kept[-1] >= 0.6 > kept[D.LOCAL_ONLY_ROUNDS - 1]        # then backed off until the bound held
