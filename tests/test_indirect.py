@@ -177,7 +177,9 @@ def test_render_config_reaches_the_ray_caster_and_the_meter():
     from room_pipeline.render.params import RenderParams, indirect_config, raycast_config
 
     p = RenderParams.from_dict({"indirect_bounces": 3, "indirect_rays_per_point": 9, "indirect_seed": 4})
-    assert indirect_config(p) == IndirectConfig(bounces=3, rays_per_point=9, seed=4)
+    assert indirect_config(p) == IndirectConfig(bounces=3, rays_per_point=9, seed=4,
+                                                max_edge_mm=RenderParams().indirect_max_edge_mm)
+    assert indirect_config(RenderParams.from_dict({"indirect_max_edge_mm": 0.0})).max_edge_mm == 0.0
     assert raycast_config(p).indirect.bounces == 3
     assert not indirect_config(p).caustics
     assert indirect_config(RenderParams.from_dict({"indirect_caustics": True})).caustics
