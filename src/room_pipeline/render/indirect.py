@@ -77,7 +77,8 @@ Transport mesh (``IndirectConfig.max_edge_mm``)
     smooth; the bias was in what the walls pass on.  Every array of this class is over the transport
     points; the mirror rays hit the refined mesh.  2 mm: 39.64 dB (patient_000 bifurcation, was 37.50)
     and 41.21 dB (patient_001 trachea, was 39.48) against the 1024-spp Cycles references
-    (benchmarks/results/cycles_residual_s12*_edge2.md); off by default until the judges are re-measured.
+    (benchmarks/results/cycles_residual_s12*_edge2.md); the default (render.indirect_max_edge_mm 2.0)
+    since session 12, judges on every default frame in benchmarks/results/realism_refit_run_s12_edge2.md.
 
 What it leaves out: the glossy lobe's direction (its share is re-emitted as if diffuse where it is kept),
 the irradiance's variation inside a triangle beyond linear interpolation, and the texture's
