@@ -12,6 +12,7 @@ exactly this set, and that it covers every module Python really imports for the 
 from __future__ import annotations
 
 import ast
+import functools
 import sys
 from pathlib import Path
 
@@ -32,10 +33,17 @@ def _module_file(mod: str) -> Path | None:
 
 
 def _imports(mod: str, path: Path) -> set[str]:
-    is_pkg = path.name == "__init__.py"
+    """The ``room_pipeline`` modules that the file ``path`` of module ``mod`` imports (statements only)."""
+    return set(_imports_of(mod, path.name == "__init__.py", path.read_text(encoding="utf-8")))
+
+
+@functools.lru_cache(maxsize=None)
+def _imports_of(mod: str, is_pkg: bool, text: str) -> frozenset[str]:
+    # keyed by the file's text, so a process that asks for several stages (write_dvc_yaml, the tests) parses
+    # each module once, and an edited file is parsed again
     package = mod if is_pkg else mod.rpartition(".")[0]
     found: set[str] = set()
-    tree = ast.parse(path.read_text(encoding="utf-8"))
+    tree = ast.parse(text)
     skip = {id(n) for f in tree.body if mod == f"{PKG}.cli" and isinstance(f, ast.FunctionDef)
             and f.name in CLI_RUN_ONLY for n in ast.walk(f)}
     for node in ast.walk(tree):
@@ -56,7 +64,7 @@ def _imports(mod: str, path: Path) -> set[str]:
             for a in node.names:  # `from . import stages` may name a submodule
                 if _module_file(f"{target}.{a.name}"):
                     found.add(f"{target}.{a.name}")
-    return found
+    return frozenset(found)
 
 
 def closure(*modules: str) -> set[Path]:

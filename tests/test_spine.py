@@ -40,21 +40,55 @@ def test_dvc_yaml_is_generated_from_stage_table():
         "dvc.yaml is stale: run `python scripts/write_dvc_yaml.py`"
 
 
+# One subprocess reports every stage's import closure: before each stage every ``room_pipeline`` module is
+# dropped from ``sys.modules``, so ``import room_pipeline.cli, room_pipeline.stages.<name>`` loads exactly the
+# project modules a fresh process would (third-party modules stay loaded: they are not in the closure, and
+# loading them once instead of once per stage is what makes this cheap).
+_CLOSURES = """
+import importlib, json, sys
+out = {}
+for name in sys.argv[1:]:
+    for k in [k for k in sys.modules if k.startswith('room_pipeline')]:
+        del sys.modules[k]
+    importlib.import_module('room_pipeline.cli')
+    importlib.import_module('room_pipeline.stages.' + name)
+    out[name] = sorted(k for k in sys.modules if k.startswith('room_pipeline'))
+print(json.dumps(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def import_closures() -> dict[str, list[str]]:
+    """stage name -> the ``room_pipeline`` modules that importing the CLI and that stage's module loads."""
+    import json
+
+    r = subprocess.run([sys.executable, "-c", _CLOSURES, *stages.STAGES], capture_output=True, text=True,
+                       encoding="utf-8", check=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_import_closures_are_per_stage(import_closures):
+    """The one-process closures do not leak between stages: a light stage's closure lacks a heavy one's modules."""
+    assert "room_pipeline.stages.render" in import_closures["render"]
+    assert "room_pipeline.stages.render" not in import_closures["tables"]
+    assert all(f"room_pipeline.stages.{n}" in c for n, c in import_closures.items())
+    assert sum(len(c) for c in import_closures.values()) > len(set().union(*import_closures.values()))
+
+
 @pytest.mark.parametrize("name", stages.STAGES)
-def test_dvc_stage_lists_exactly_its_code_deps(name):
+def test_dvc_stage_lists_exactly_its_code_deps(name, import_closures):
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())
     st = dvc["stages"][name]
     deps = [d for d in st.get("do", st)["deps"] if d.startswith("src/")]
     assert sorted(deps) == stage_deps.package_deps(name)
     # and the closure is what Python really imports for that stage
-    code = ("import sys, room_pipeline.cli, room_pipeline.stages.%s as m;"
-            "print('\\n'.join(sorted(k for k in sys.modules if k.startswith('room_pipeline'))))" % name)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    out = import_closures[name]
     imported = {str(Path(importlib.util.find_spec(m).origin).relative_to(REPO)) for m in out}
     covered = lambda f: any(f == d or f.startswith(d + "/") for d in deps)  # noqa: E731  (a file, or in a folder)
     assert all(map(covered, imported)), f"imported but not listed: {sorted(f for f in imported if not covered(f))}"
     # the package-level list is exactly the packages of the import closure (no folder listed for nothing)
-    assert all(any(f == d or f.startswith(d + "/") for f in stage_deps.stage_deps(name)) for d in deps)
+    files = stage_deps.stage_deps(name)
+    assert all(any(f == d or f.startswith(d + "/") for f in files) for d in deps)
 
 
 @pytest.mark.parametrize("name", stages.STAGES)
