@@ -62,7 +62,6 @@ import math
 from typing import Callable
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 
 from ..config.params import params_from_dict
@@ -307,6 +306,8 @@ def plan_joints(route, targets: np.ndarray, arclength: np.ndarray, timestamps: n
     allowed = np.ones(T, bool)
     allowed[0] = False
     sign = np.zeros(T)                 # +1 / -1: q1 bounded to that side of +-thr_plan; 0: free in [-q1_max, q1_max]
+    from scipy.optimize import least_squares   # here, not at import: config validation loads this module
+
     nfev, passes, history = 0, 0, []
     for passes in range(1, int(params.max_passes) + 1):
         gid = np.cumsum(allowed)
