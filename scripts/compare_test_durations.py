@@ -14,7 +14,9 @@ as JUnit records them), not CPU times: a loaded machine inflates both runs.  Wit
 CPU seconds that ``scripts/pytest_cpu_times.py`` records (run pytest with ``-p pytest_cpu_times`` and
 ``scripts`` on ``PYTHONPATH``) are compared instead: much less sensitive to a shared machine.  Several files per
 side (comma-separated): each test's smallest time over them (repeated runs; the minimum is the least disturbed).
-``--by-file N``: the N test files whose summed time grew most.
+``--by-file N``: the N test files whose summed time grew most.  ``--write-ids FILE``: the common tests' pytest
+node ids, one a line (``tests/test_x.py::test_y[p]``; ``--root``, default ``.``, is the checkout whose files name
+them), so both commits can be re-run on exactly those tests: ``pytest -p pytest_cpu_times @FILE``.
 """
 from __future__ import annotations
 
@@ -57,6 +59,17 @@ def durations_min(paths: str, cpu: bool = False) -> dict[str, float]:
     return {t: min(r[t] for r in runs) for t in common}
 
 
+def node_id(test: str, root: Path) -> str | None:
+    """JUnit ``classname::name`` (``tests.test_x.TestC::test_y[p]``) -> pytest node id
+    (``tests/test_x.py::TestC::test_y[p]``), the module found as a file under ``root``; None when none is."""
+    classname, _, name = test.partition("::")
+    parts = classname.split(".")
+    for k in range(len(parts), 0, -1):
+        if (root / Path(*parts[:k])).with_suffix(".py").is_file():
+            return "::".join(["/".join(parts[:k]) + ".py", *parts[k:], name])
+    return None
+
+
 def compare(a: dict[str, float], b: dict[str, float], min_s: float) -> dict:
     common = sorted(set(a) & set(b))
     sum_a, sum_b = sum(a[t] for t in common), sum(b[t] for t in common)
@@ -75,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-s", type=float, default=0.05, help="tests shorter than this in A leave the median out")
     ap.add_argument("--cpu", action="store_true", help="compare the cpu_s property (pytest_cpu_times) instead")
     ap.add_argument("--by-file", type=int, default=0, metavar="N", help="also the N files that grew most")
+    ap.add_argument("--write-ids", type=Path, metavar="FILE", help="write the common tests' pytest node ids here")
+    ap.add_argument("--root", type=Path, default=Path("."), help="checkout the node ids' files are found in")
     args = ap.parse_args(argv)
     da, db = durations_min(args.a, args.cpu), durations_min(args.b, args.cpu)
     r = compare(da, db, args.min_s)
@@ -87,6 +102,14 @@ def main(argv: list[str] | None = None) -> int:
     print("slowed most (test, A s, B s):")
     for t, sa, sb in r["slowed"]:
         print(f"  {t}  {sa:.2f}  {sb:.2f}")
+    if args.write_ids:
+        common = sorted(set(da) & set(db))
+        ids = [node_id(t, args.root) for t in common]
+        if None in ids:
+            print(f"room: error: no test file under {args.root} for {common[ids.index(None)]}", file=sys.stderr)
+            return 2
+        args.write_ids.write_text("".join(f"{i}\n" for i in ids), encoding="utf-8")
+        print(f"wrote {len(ids)} node ids to {args.write_ids}")
     if args.by_file:
         files: dict[str, list] = {}
         for t in set(da) & set(db):

@@ -477,6 +477,17 @@ def test_compare_test_durations_counts_only_tests_passed_in_both(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "tests passed in both: 2" in r.stdout and "A 3.0, B 3.5, B / A 1.167" in r.stdout
     assert "median per-test B / A over 2 tests" in r.stdout and "1.250" in r.stdout
+    # --write-ids: the common tests as pytest node ids (the module found under --root), for `pytest @FILE`
+    ids = tmp_path / "ids.txt"
+    r = subprocess.run([sys.executable, script, str(a), str(b), "--write-ids", str(ids), "--root", str(tmp_path)],
+                       capture_output=True, text=True, encoding="utf-8")
+    assert r.returncode == 2 and r.stderr.startswith("room: error: no test file") and not ids.exists()
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "t.py").write_text("", encoding="utf-8")
+    r = subprocess.run([sys.executable, script, str(a), str(b), "--write-ids", str(ids), "--root", str(tmp_path)],
+                       capture_output=True, text=True, encoding="utf-8")
+    assert r.returncode == 0, r.stderr
+    assert ids.read_text(encoding="utf-8") == "tests/t.py::x\ntests/t.py::y\n"
     (tmp_path / "junk.xml").write_text("not xml", encoding="utf-8")
     for args in ([str(tmp_path / "junk.xml"), str(b)],
                  [str(junit(tmp_path / "c.xml", [("z", 1.0, "")])), str(b)]):
