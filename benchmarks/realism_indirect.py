@@ -406,7 +406,6 @@ def speed(scene, views, names, args) -> None:
             rp = render_params_default({k_: json.loads(v) for k_, v in (x.split("=", 1) for x in args.set)})
             cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k,
                                                                                caustics=rp.indirect_caustics,
-                                                                               patch=rp.indirect_patch,
                                                                                max_edge_mm=rp.indirect_max_edge_mm),
                                 edge_samples=rp.edge_samples, edge_depth_jump=rp.edge_depth_jump)
             rc = RaycastRenderer(sc, cfg)
@@ -427,7 +426,7 @@ def speed(scene, views, names, args) -> None:
             m0 = time.process_time()
             raw_exposures(sc, exposure_params(rp), args.threads,
                           IndirectConfig(bounces=nb, rays_per_point=k, caustics=rp.indirect_caustics,
-                                         patch=rp.indirect_patch, max_edge_mm=rp.indirect_max_edge_mm)
+                                         max_edge_mm=rp.indirect_max_edge_mm)
                           if nb else None)
             meter = time.process_time() - m0
             rows.append({"view": n, "bounces": nb, "rays_per_point": k, "cpu_s": float(np.median(cpu)),
