@@ -457,7 +457,7 @@ def write_md(out: str = "realism_indirect") -> None:
          "cannot evaluate per pixel). References: Cycles, no denoiser, no adaptive sampling, 8 bounces, shadow "
          "rays on; PSNR of 8-bit sRGB frames through the same film (veiling glare, the view's metered "
          "exposure); PSNR* removes the reference's own noise (MSE(a, b) / 4 of its two halves). "
-         "Patient: the default phantom patient_000, sequence_000; views picked from the route.", ""]
+         "Patient: the command's --inputs (default: the phantom patient_000), sequence_000; views picked from the route.", ""]
     for q in (RESULTS / f"{out}_direct.json", RESULTS / f"{out}.json"):
         if not q.exists():
             continue
