@@ -406,7 +406,6 @@ def speed(scene, views, names, args) -> None:
             rp = render_params_default({k_: json.loads(v) for k_, v in (x.split("=", 1) for x in args.set)})
             cfg = RaycastConfig(nthreads=args.threads, indirect=IndirectConfig(bounces=nb, rays_per_point=k,
                                                                                caustics=rp.indirect_caustics,
-                                                                               patch=rp.indirect_patch,
                                                                                max_edge_mm=rp.indirect_max_edge_mm),
                                 edge_samples=rp.edge_samples, edge_depth_jump=rp.edge_depth_jump)
             rc = RaycastRenderer(sc, cfg)
@@ -427,7 +426,7 @@ def speed(scene, views, names, args) -> None:
             m0 = time.process_time()
             raw_exposures(sc, exposure_params(rp), args.threads,
                           IndirectConfig(bounces=nb, rays_per_point=k, caustics=rp.indirect_caustics,
-                                         patch=rp.indirect_patch, max_edge_mm=rp.indirect_max_edge_mm)
+                                         max_edge_mm=rp.indirect_max_edge_mm)
                           if nb else None)
             meter = time.process_time() - m0
             rows.append({"view": n, "bounces": nb, "rays_per_point": k, "cpu_s": float(np.median(cpu)),
@@ -458,7 +457,7 @@ def write_md(out: str = "realism_indirect") -> None:
          "cannot evaluate per pixel). References: Cycles, no denoiser, no adaptive sampling, 8 bounces, shadow "
          "rays on; PSNR of 8-bit sRGB frames through the same film (veiling glare, the view's metered "
          "exposure); PSNR* removes the reference's own noise (MSE(a, b) / 4 of its two halves). "
-         "Patient: the default phantom patient_000, sequence_000; views picked from the route.", ""]
+         "Patient: the command's --inputs (default: the phantom patient_000), sequence_000; views picked from the route.", ""]
     for q in (RESULTS / f"{out}_direct.json", RESULTS / f"{out}.json"):
         if not q.exists():
             continue

@@ -2,7 +2,7 @@
 """The ray caster's precomputed inter-reflection against a brute-force path tracer of the same transport (issue #15).
 
     python benchmarks/realism_indirect_pt.py --views DIR/patient_000:bifurcation,trachea \
-        --views DIR/patient_001:trachea --patch vertex,gather,direct,both --out realism_indirect_pt
+        --views DIR/patient_001:trachea --max-edge 0,2.0 --out realism_indirect_pt
     python benchmarks/realism_indirect_pt.py --quick          # a tiny run: does it work?
 
 No Cycles: both sides are diffuse transport on the render mesh (the vertex albedo the transport uses,
@@ -65,9 +65,8 @@ def check_view(sc, cfg, spp: int, stride: int, seed: int = 7) -> dict:
 
     c0 = time.process_time()
     ed, cos_l = rad.direct(pose, light)
-    src = rad.patch_direct(pose, light, ed) if rad.config.patch in ("direct", "both") else ed
-    per_bounce_rad = [rad.indirect_irradiance(src, b, cos_l).astype(np.float64) for b in range(1, 6)]
-    e8 = rad.indirect_irradiance(src, 8, cos_l).astype(np.float64)
+    per_bounce_rad = [rad.indirect_irradiance(ed, b, cos_l).astype(np.float64) for b in range(1, 6)]
+    e8 = rad.indirect_irradiance(ed, 8, cos_l).astype(np.float64)
     cpu_rad = time.process_time() - c0
     rays = sc.camera.pixel_rays()[::stride, ::stride].reshape(-1, 3) @ R.T
     d0 = unit(rays)
@@ -93,7 +92,7 @@ def check_view(sc, cfg, spp: int, stride: int, seed: int = 7) -> dict:
         P[alive] = o + t[hit, None] * d[hit]
         N[alive] = unit(interp(vn, prim[hit], uv[hit]))
         T[alive] *= interp(alb, prim[hit], uv[hit])
-        e = rad._point_irradiance(P[alive] + rad.origin, N[alive], lp + rad.origin, R[:, 2], light)   # world m
+        e = rad.point_irradiance(P[alive] + rad.origin, N[alive], lp + rad.origin, R[:, 2], light)   # world m
         np.add.at(acc, (own[alive], b), T[alive] * e[:, None])
     acc /= spp
     cpu_pt = time.process_time() - c0
@@ -119,8 +118,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", action="append", help="PATIENT_DIR:view,view (repeatable)")
     ap.add_argument("--sequence", default="sequence_000")
-    ap.add_argument("--patch", default="vertex,direct", help="IndirectConfig.patch modes to compare; "
-                    "MODE@L: with max_edge_mm L (the transport on the mesh refined to edges <= L mm)")
+    ap.add_argument("--max-edge", default="0,2.0", help="IndirectConfig.max_edge_mm values to compare (mm; "
+                    "0: the transport on the render mesh, L > 0: on the mesh refined to edges <= L mm)")
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--stride", type=int, default=4, help="every n-th pixel of the 200x200 frame")
     ap.add_argument("--threads", type=int, default=2)
@@ -136,12 +135,11 @@ def main() -> None:
         if not Path(spec.rsplit(":", 1)[0]).is_dir():
             print(f"realism_indirect_pt: no patient folder {spec.rsplit(':', 1)[0]}", file=sys.stderr)
             sys.exit(2)
-    for mode in args.patch.split(","):
-        try:                                                        # MODE@L: a patch mode, max_edge_mm L
-            pm, _, edge = mode.partition("@")
-            IndirectConfig(patch=pm, max_edge_mm=float(edge) if edge else 0.0)
+    for edge in args.max_edge.split(","):
+        try:
+            IndirectConfig(max_edge_mm=float(edge))
         except ValueError as e:
-            print(f"realism_indirect_pt: bad --patch {mode!r}: {e}", file=sys.stderr)
+            print(f"realism_indirect_pt: bad --max-edge {edge!r}: {e}", file=sys.stderr)
             sys.exit(2)
     rp = cr.render_params()
     rows = []
@@ -151,13 +149,11 @@ def main() -> None:
         views = cr.pick_views(scene, graph)
         for name in names.split(","):
             sc = cr.view_scene(scene, views[name])
-            for mode in args.patch.split(","):
+            for edge in args.max_edge.split(","):
                 cfg = raycast_config(rp, args.threads)
-                pm, _, edge = mode.partition("@")                   # "vertex@1.0": max_edge_mm 1.0
-                cfg = dataclasses.replace(cfg, indirect=dataclasses.replace(
-                    cfg.indirect, patch=pm, max_edge_mm=float(edge) if edge else cfg.indirect.max_edge_mm))
+                cfg = dataclasses.replace(cfg, indirect=dataclasses.replace(cfg.indirect, max_edge_mm=float(edge)))
                 r = check_view(sc, cfg, args.spp, args.stride)
-                r.update({"patient": Path(pdir).name, "view": name, "pose": views[name], "patch": mode})
+                r.update({"patient": Path(pdir).name, "view": name, "pose": views[name], "max_edge_mm": float(edge)})
                 rows.append(r)
                 print(json.dumps(r), flush=True)
     if args.quick:
@@ -166,19 +162,19 @@ def main() -> None:
     doc = {"args": vars(args), "load_avg_end": os.getloadavg(), "rows": rows}
     (RESULTS / f"{args.out}.json").write_text(json.dumps(doc, indent=1) + "\n")
     cmd = "python benchmarks/realism_indirect_pt.py " + " ".join(f"--views {v}" for v in args.views) + \
-        f" --patch {args.patch} --spp {args.spp} --stride {args.stride} --out {args.out}"
+        f" --max-edge {args.max_edge} --spp {args.spp} --stride {args.stride} --out {args.out}"
     f3 = lambda x: " / ".join(f"{v:.3f}" for v in x)   # noqa: E731
     L = ["# Precomputed inter-reflection vs a brute-force path tracer of the same diffuse transport (issue #15)", "",
          f"`{cmd}` (module docstring; 200x200 views, every {args.stride}-th pixel, {args.spp} paths each; load "
          f"average {doc['load_avg_end'][0]:.1f} at the end).  Ratio radiosity / path tracer of the indirect "
          "irradiance (8 bounces), R / G / B.", "",
-         "| patient / view (pose) | patch | all | near < 10 mm | 10-25 mm | far > 25 mm | per bounce 1 / 2 / 3 (G) | "
+         "| patient / view (pose) | transport max edge mm | all | near < 10 mm | 10-25 mm | far > 25 mm | per bounce 1 / 2 / 3 (G) | "
          "share beyond 8 bounces (R / G / B) |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         cells = [f3(r["regions"][k]["ratio_rgb"]) if k in r["regions"] else "-"
                  for k in ("all", "near<10mm", "10-25mm", "far>25mm")]
         pb = " / ".join(f"{x[1]:.3f}" for x in r["per_bounce_ratio_rgb"][:3])
-        L.append(f"| {r['patient']} {r['view']} ({r['pose']}) | {r['patch']} | " + " | ".join(cells) +
+        L.append(f"| {r['patient']} {r['view']} ({r['pose']}) | {r['max_edge_mm']:g} | " + " | ".join(cells) +
                  f" | {pb} | {f3(r['beyond_8_share_rgb'])} |")
     (RESULTS / f"{args.out}.md").write_text("\n".join(L) + "\n")
     print("\n".join(L))

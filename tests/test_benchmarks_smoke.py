@@ -76,7 +76,7 @@ SMOKE = {
     "cycles_quality.py": (["--quick"], ("bpy", "run")),
     "cycles_reference.py": (["--quick"], ("bpy", "run")),
     "cycles_residual.py": (["--quick", "--direct"], ("bpy", "run")),
-    "realism_indirect_pt.py": (["--quick", "--patch", "vertex,direct,vertex@2.0"], ("run",)),
+    "realism_indirect_pt.py": (["--quick", "--max-edge", "0,2.0"], ("run",)),
 }
 
 #: scripts without a smoke mode (yet) -> why

@@ -4,7 +4,6 @@ A lumen is nearly closed, so most of the light a wall receives comes from other 
 more diffuse bounces (Cycles needs >= 8 bounces to converge inside an airway:
 benchmarks/results/cycles_reference.md).  The geometry is static per patient, so the transport between
 surface points is computed once, and only the direct light changes per frame.
-Over 500 lines because the transport's sampling options (patch means, transport mesh) share its state.
 
 Points
     The vertices of the render mesh, with their area-weighted normals turned into the lumen (the mesh's
@@ -50,24 +49,13 @@ Per frame
        ``(1 - F0) albedo(x) / pi`` (the pixel's own albedo: the per-pixel appearance) is added to the
        direct radiance.
 
-Patch means (``IndirectConfig.patch``)
+Transport mesh (``IndirectConfig.max_edge_mm``)
     With point samples at the vertices, the piecewise-linear field of the vertex values is not the field:
     the tip light's irradiance ``I cos / r^2`` peaks inside the large flat triangles of the decimated
     trachea beside the scope (edges ~3 mm at 7-10 mm from the light), and the linear interpolant of its
     vertex samples under-counts the power those walls pass on (patient_000's bifurcation view: 13 % under
-    on the walls 6-10 mm from the light, 3.5 % under over the mesh; every later bounce loses ~1.5 % more
-    against a brute-force path tracer of the same diffuse transport, benchmarks/realism_indirect_pt.py).
-    With ``patch`` each vertex value is the mean of the field over its one-ring weighted with its hat
-    function ``phi_j`` (the lumped L2 projection of finite elements: ``E_j = int phi_j E / int phi_j``),
-    whose linear interpolant carries exactly the field's power, ``sum_j E_j int phi_j = int E``: the gather
-    rays of vertex ``i`` start at points drawn with density ``phi_i`` (a triangle of the one-ring by area,
-    ``lambda_i ~ Beta(2, 2)`` in it; the interpolated normal there), and the tip light's irradiance is
-    integrated over the one-ring (sub-triangle centroids where the field is not near-linear).  The classic
-    radiosity method's patch average, on the vertices' hat functions.  Against the 1024-spp Cycles reference
-    'direct' gains 2.4 dB at patient_000's bifurcation but loses 1.1 dB on patient_001's trachea (its far
-    walls, already too bright): off by default (benchmarks/results/cycles_residual_s12*.md).
-
-Transport mesh (``IndirectConfig.max_edge_mm``)
+    on the walls 6-10 mm from the light; every later bounce loses ~1.5 % more against a brute-force path
+    tracer of the same diffuse transport, benchmarks/realism_indirect_pt.py).
     With ``max_edge_mm`` > 0 the points are the vertices of the render mesh refined by midpoint splits
     until no edge is longer (:mod:`~room_pipeline.render.refine`: the same flat triangles, sampled finer;
     albedo and normals interpolated linearly at the new vertices, as the pixels shade them), so the tip
@@ -79,6 +67,8 @@ Transport mesh (``IndirectConfig.max_edge_mm``)
     and 41.21 dB (patient_001 trachea, was 39.48) against the 1024-spp Cycles references
     (benchmarks/results/cycles_residual_s12*_edge2.md); the default (render.indirect_max_edge_mm 2.0)
     since session 12, judges on every default frame in benchmarks/results/realism_refit_run_s12_edge2.md.
+    Hat-weighted patch means of the vertex values (session 12's ``render.indirect_patch``) fixed the same
+    bias less well (39.87 / 38.40 dB, benchmarks/results/cycles_residual_s12*_patch_direct.md): removed.
 
 What it leaves out: the glossy lobe's direction (its share is re-emitted as if diffuse where it is kept),
 the irradiance's variation inside a triangle beyond linear interpolation, and the texture's
@@ -97,10 +87,6 @@ from .scene import TipLight, TissueMaterial
 from .shading import light_profile, specular_albedo
 
 
-#: IndirectConfig.patch: which vertex values are patch means (module docstring, "Patch means")
-PATCH_MODES = ("vertex", "gather", "direct", "both")
-
-
 @dataclasses.dataclass(frozen=True)
 class IndirectConfig:
     """Knobs of the precomputed inter-reflection (module docstring).
@@ -114,12 +100,6 @@ class IndirectConfig:
     and the ``1 - A`` layering of the diffuse base) in the light they pass on (step 2 of the module
     docstring); False (the default): they pass on ``albedo`` E, pure Lambertian, as Cycles renders with
     ``caustics_reflective`` off (render/blender.py sets it off for every Cycles render, the references too);
-    patch: which vertex values are patch means (module docstring, "Patch means"): 'gather' -- the gather
-    rays of a vertex start at points of its one-ring drawn with the density of its hat function; 'direct' --
-    the direct irradiance a vertex passes on is the hat-weighted mean over its one-ring, integrated with
-    ``near_subdivisions``^2 points per triangle on the triangles whose longest edge exceeds ``near_ratio``
-    times their distance to the light (elsewhere the vertices' own values, exact for a linear field);
-    'both'; 'vertex' (default): point samples at the vertices;
     max_edge_mm: > 0 runs the transport on the render mesh refined until no edge is longer (mm; module
     docstring, "Transport mesh"); 0 (default): on the render mesh itself.
     """
@@ -132,19 +112,11 @@ class IndirectConfig:
     glossy: bool = True
     glossy_stride: int = 2
     caustics: bool = False
-    patch: str = "vertex"
-    near_ratio: float = 0.1
-    near_subdivisions: int = 4
     max_edge_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.max_edge_mm) and self.max_edge_mm >= 0):
             raise ValueError(f"indirect: max_edge_mm must be >= 0 (0 = the render mesh), got {self.max_edge_mm}")
-        if self.patch not in PATCH_MODES:
-            raise ValueError(f"indirect: patch must be one of {PATCH_MODES}, got {self.patch!r}")
-        if self.near_subdivisions < 1 or not self.near_ratio > 0:
-            raise ValueError(f"indirect: near_subdivisions >= 1 and near_ratio > 0 required, got "
-                             f"{self.near_subdivisions}, {self.near_ratio}")
         if self.bounces < 0 or self.rays_per_point < 1 or not self.eps_m > 0 or self.glossy_stride < 1:
             raise ValueError(f"indirect: bounces >= 0, rays_per_point >= 1 and eps_m > 0 required, got "
                              f"{self.bounces}, {self.rays_per_point}, {self.eps_m}")
@@ -190,26 +162,6 @@ def cosine_directions(normals: np.ndarray, k: int, seed: int) -> np.ndarray:
     return x[..., None] * t[:, None] + y[..., None] * s[:, None] + z[..., None] * n[:, None]
 
 
-def stratified_cosine_directions(normals: np.ndarray, seed: int) -> np.ndarray:
-    """(N, K, 3) cosine-weighted unit directions, one about each of ``normals`` (N, K, 3), the K of a row
-    stratified as :func:`cosine_directions` (a jittered grid when K is a square); seeded."""
-    n = np.asarray(normals, dtype=np.float64)
-    rows, k = n.shape[:2]
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), rows, int(k), 3]))
-    m = int(round(math.sqrt(k)))
-    if m * m == k:
-        gi, gj = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
-        u1 = (gi.reshape(-1) + rng.random((rows, k))) / m
-        u2 = (gj.reshape(-1) + rng.random((rows, k))) / m
-    else:
-        u1, u2 = rng.random((rows, k)), rng.random((rows, k))
-    r, phi = np.sqrt(u1), 2 * math.pi * u2
-    t, s = _frames(n.reshape(-1, 3))
-    t, s = t.reshape(n.shape), s.reshape(n.shape)
-    return ((r * np.cos(phi))[..., None] * t + (r * np.sin(phi))[..., None] * s
-            + np.sqrt(np.maximum(1 - u1, 0.0))[..., None] * n)
-
-
 #: gather matrices built in this process, keyed by the mesh's bytes and the sampling knobs (at most
 #: ``_G_CACHE_SIZE``; a render stage builds its meter, its probe and its in-process worker on one mesh)
 _G_CACHE: dict[tuple, object] = {}
@@ -224,8 +176,7 @@ def _gather_key(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, con
         a = np.ascontiguousarray(a)
         h.update(str((a.dtype.str, a.shape)).encode())
         h.update(a.tobytes())
-    return (h.hexdigest(), config.rays_per_point, config.seed, config.eps_m, config.patch in ("gather", "both"),
-            config.max_edge_mm)
+    return h.hexdigest(), config.rays_per_point, config.seed, config.eps_m, config.max_edge_mm
 
 
 class Radiosity:
@@ -314,15 +265,9 @@ class Radiosity:
         chunk = max(1, 2_000_000 // k)
         for s in range(0, nv, chunk):
             e = min(nv, s + chunk)
-            if config.patch in ("gather", "both"):
-                p, n = self._patch_origins(s, e, k, config.seed + s)
-                d = stratified_cosine_directions(n, config.seed + s)
-                d, n, p = d.reshape(-1, 3), n.reshape(-1, 3), p.reshape(-1, 3)
-                o = p - self.origin + config.eps_m * n
-            else:
-                n = self.normals[s:e]
-                d = cosine_directions(n, k, config.seed + s).reshape(-1, 3)
-                o = np.repeat(self.vertices[s:e] - self.origin + config.eps_m * n, k, axis=0)
+            n = self.normals[s:e]
+            d = cosine_directions(n, k, config.seed + s).reshape(-1, 3)
+            o = np.repeat(self.vertices[s:e] - self.origin + config.eps_m * n, k, axis=0)
             out = rc.cast_rays(o3d.core.Tensor(np.concatenate([o, d], axis=1).astype(np.float32)),
                                nthreads=nthreads)
             prim = out["primitive_ids"].numpy().astype(np.int64)
@@ -343,38 +288,6 @@ class Radiosity:
         g = sp.csr_matrix((vals, (rows, cols)), shape=(nv, nv), dtype=np.float64)
         g.sum_duplicates()
         return g.astype(np.float32)
-
-    def _patch_origins(self, s: int, e: int, k: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        """(n, K, 3) points (world m) and unit interpolated normals (into the lumen) of vertices ``s..e``,
-        drawn with the density of each vertex's hat function (module docstring, "Patch means"); seeded."""
-        f = self.faces
-        order = np.argsort(f.reshape(-1), kind="stable")              # corners grouped by vertex
-        start = np.searchsorted(f.reshape(-1)[order], np.arange(len(self.vertices) + 1))
-        cw = np.cumsum(self.face_area[order // 3])
-        rng = np.random.default_rng(np.random.SeedSequence([int(seed), e - s, int(k), 7]))
-        v = np.arange(s, e)
-        lo, hi = start[v], start[v + 1]
-        base = np.where(lo > 0, cw[np.maximum(lo - 1, 0)], 0.0)
-        tot = np.where(hi > lo, cw[np.maximum(hi - 1, 0)] - base, 0.0)
-        strata = rng.permuted(np.broadcast_to(np.arange(k), (len(v), k)), axis=1)   # paired at random with
-        u = (strata + rng.random((len(v), k))) / k              # the direction strata: stratified, unbiased
-        c = np.searchsorted(cw, base[:, None] + u * tot[:, None], side="right")
-        c = np.clip(c, lo[:, None], np.maximum(hi[:, None] - 1, lo[:, None]))
-        isolated = hi == lo                                            # a vertex of no face: the vertex itself
-        corner = order[np.minimum(c, len(order) - 1)]
-        face, slot = corner // 3, corner % 3
-        li = rng.beta(2.0, 2.0, size=(len(v), k))                      # density prop. to lambda_i on the triangle
-        t = rng.random((len(v), k))
-        tri = f[face]                                                  # (n, K, 3)
-        lam = np.repeat(((1 - li) * t)[..., None], 3, axis=2)
-        np.put_along_axis(lam, ((slot + 1) % 3)[..., None], ((1 - li) * (1 - t))[..., None], axis=2)
-        np.put_along_axis(lam, slot[..., None], li[..., None], axis=2)
-        p = np.einsum("nkc,nkcd->nkd", lam, self.vertices[tri])
-        n = np.einsum("nkc,nkcd->nkd", lam, self.normals[tri])         # interpolated, into the lumen
-        n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-30)
-        p[isolated] = self.vertices[v[isolated]][:, None]
-        n[isolated] = self.normals[v[isolated]][:, None]
-        return p, n
 
     # ------------------------------------------------------------------ per frame
     def bounce_albedo(self, cos_light: np.ndarray) -> np.ndarray:
@@ -423,37 +336,11 @@ class Radiosity:
         e[idx] = val
         return e, cos_l
 
-    def patch_direct(self, pose: np.ndarray, light: TipLight, e_vertex: np.ndarray) -> np.ndarray:
-        """(V,) float32 hat-weighted mean of the tip light's irradiance over each vertex's one-ring (module
-        docstring, "Patch means"), from the vertex samples ``e_vertex`` (:meth:`direct`) and, on the triangles
-        near the light, ``near_subdivisions``^2 sub-triangle centroids (interpolated normals, shadow rays)."""
-        f, cfg = self.faces, self.config
-        pose = np.asarray(pose, dtype=np.float64)
-        lp = pose[:3, :3] @ np.asarray(light.offset_m, dtype=np.float64) + pose[:3, 3]
-        ev = np.asarray(e_vertex, dtype=np.float64)[f]                  # (F, 3)
-        contrib = self.face_area[:, None] * (ev / 6 + (ev.sum(axis=1, keepdims=True) - ev) / 12)
-        fv = self.vertices[f]
-        edge = np.max(np.linalg.norm(fv - np.roll(fv, 1, axis=1), axis=2), axis=1)
-        dist = np.linalg.norm(fv.mean(axis=1) - lp, axis=1)
-        near = np.flatnonzero(edge > cfg.near_ratio * dist)
-        if near.size:
-            m = cfg.near_subdivisions
-            q = [((i + 1 / 3) / m, (j + 1 / 3) / m) for i in range(m) for j in range(m - i)] + \
-                [((i + 2 / 3) / m, (j + 2 / 3) / m) for i in range(m - 1) for j in range(m - 1 - i)]
-            b = np.array([(1 - a - c, a, c) for a, c in q])               # (Q, 3) barycentrics, weights 1/Q
-            tri = f[near]
-            p = np.einsum("qc,fcd->fqd", b, self.vertices[tri]).reshape(-1, 3)
-            n = np.einsum("qc,fcd->fqd", b, self.normals[tri])
-            n = (n / np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-30)).reshape(-1, 3)
-            e = self._point_irradiance(p, n, lp, pose[:3, 2], light).reshape(len(near), len(b))
-            contrib[near] = self.face_area[near, None] * (e @ b) / len(b)
-        out = np.bincount(f.reshape(-1), contrib.reshape(-1), minlength=len(self.vertices))
-        return (out / np.where(self.vertex_mass > 0, self.vertex_mass, 1.0)).astype(np.float32)
-
-    def _point_irradiance(self, p: np.ndarray, n: np.ndarray, lp: np.ndarray, axis: np.ndarray,
+    def point_irradiance(self, p: np.ndarray, n: np.ndarray, lp: np.ndarray, axis: np.ndarray,
                           light: TipLight) -> np.ndarray:
         """(N,) irradiance (W/m^2) of the tip light at ``lp`` on points ``p`` (N, 3) with unit normals ``n``
-        into the lumen (as :meth:`direct`, with its shadow rays)."""
+        into the lumen (as :meth:`direct`, with its shadow rays): the tip light at any surface point, as a
+        path tracer needs it (benchmarks/realism_indirect_pt.py) and a fine quadrature of its power (tests)."""
         lv = lp - p
         r2 = np.einsum("ij,ij->i", lv, lv)
         r = np.sqrt(np.maximum(r2, 1e-30))
@@ -503,8 +390,6 @@ class Radiosity:
         its incidence and the light of one bounce fewer, ``(rho_dir E_dir + rho E_ind^(n-1)) / pi`` (a mirror
         ray at the pixel is itself a bounce, so the path keeps at most ``bounces`` bounces, as in Cycles)."""
         ed, cos_l = self.direct(pose, light)
-        if self.config.patch in ("direct", "both"):
-            ed = self.patch_direct(pose, light, ed)
         e_ind, prev, first = self._bounce(ed, None, cos_l)
         return ed, e_ind, (first + self.rho * prev) * np.float32(1 / math.pi)
 

@@ -46,7 +46,6 @@ class RenderParams:
     indirect_seed: int = 0
     indirect_shadows: bool = True
     indirect_caustics: bool = False
-    indirect_patch: str = "vertex"
     indirect_max_edge_mm: float = 2.0
     direct_shadows: bool = False
     light_power_w: float = 0.02
@@ -167,7 +166,7 @@ def indirect_config(p: "RenderParams"):
 
     return IndirectConfig(bounces=p.indirect_bounces, rays_per_point=p.indirect_rays_per_point,
                           seed=p.indirect_seed, shadows=p.indirect_shadows, caustics=p.indirect_caustics,
-                          patch=p.indirect_patch, max_edge_mm=p.indirect_max_edge_mm)
+                          max_edge_mm=p.indirect_max_edge_mm)
 
 
 def raycast_config(p: "RenderParams", nthreads: int = 0):
