@@ -1,7 +1,7 @@
 """Closed-loop navigation benchmark (issue #19): vision policies vs the centreline oracle.
 
     python benchmarks/navigation.py --output-dir OUTPUT_DIR [--targets-per-patient N] [--policies depth,oracle,darkest]
-                                    [--max-time-s S] [--trace] [overrides ...]
+                                    [--max-time-s S] [--trace] [--reuse A.json,B.json] [overrides ...]
 
 OUTPUT_DIR holds the patients' anatomy stages' outputs (``room run --patient ID --until medial_axis
 output_dir=OUTPUT_DIR``, or a full pipeline run).  For each patient of ``navigate.benchmark.patients``,
@@ -13,6 +13,8 @@ check a change on targets it was not tuned on); every policy runs one episode pe
 contact force, minimum distance from the scope's surface to the true lumen wall, generation reached, and CPU time
 per control step (render + plan + simulate 0.1 s), next to the wall time and the load average (the machine is
 shared: CPU time is the figure).  Writes benchmarks/results/navigation.{md,json} and reports/navigation.md;
+``--reuse``: episodes already run in those result files with the same output dir and the same episode / planner /
+simulate parameters are taken from them (an episode is deterministic; e.g. another seed's draw shares most targets);
 ``--trace``: also NAME_trace.md, every wrong-branch episode's fork, failure class and last steps
 (:mod:`room_pipeline.navigation.diagnose`; the classified causes so far: benchmarks/results/navigation_failures.md).
 """
@@ -70,6 +72,9 @@ def main(argv=None) -> int:
     ap.add_argument("--name", default="navigation")
     ap.add_argument("--patients", help="comma-separated subset of navigate.benchmark.patients")
     ap.add_argument("--merge", nargs="+", help="combine these result JSONs (runs over other patients) into --name")
+    ap.add_argument("--reuse", help="comma-separated result JSONs of earlier runs: an episode (patient, target, policy) run there "
+                    "with the same output dir and the same episode / planner / simulate parameters is taken from it instead "
+                    "of re-run (episodes are deterministic; the row keeps reused_from)")
     ap.add_argument("--trace", action="store_true", help="for every wrong-branch episode, the fork, the class of the "
                     "failure and its last steps (navigation/diagnose.py) into benchmarks/results/NAME_trace.md")
     args, overrides = ap.parse_known_args(argv)
@@ -85,6 +90,14 @@ def main(argv=None) -> int:
         docs = [json.loads(Path(m).read_text()) for m in args.merge]
         rows = [r for d in docs for r in d["episodes"]]
         plan = list({t["patient"]: t for d in docs for t in d["targets"]}.values())   # one entry a patient
+    same = {"output_dir": str(args.output_dir), "episode": dataclasses.asdict(ep), "planner": dataclasses.asdict(planner),
+            "simulate": dataclasses.asdict(sim)}
+    done = {}
+    for f in (args.reuse.split(",") if args.reuse else []):
+        d = json.loads(Path(f).read_text())
+        if all(json.loads(json.dumps(v)) == d.get(k) for k, v in same.items()):
+            for r in d["episodes"]:
+                done.setdefault((r["patient"], r["target"], r["policy"]), dict(r, reused_from=f))
     patients = [] if args.merge else (args.patients.split(",") if args.patients else list(bench.patients))
     for pid in patients:
         patient = load_patient(Path(args.output_dir), pid)
@@ -92,6 +105,10 @@ def main(argv=None) -> int:
         plan.append({"patient": pid, "eligible": elig, "targets": pick})
         for target in pick:
             for pol in policies:
+                if (pid, int(target), pol) in done:
+                    rows.append(done[(pid, int(target), pol)])
+                    print(f"{pid} target {target} {pol}: reused from {rows[-1]['reused_from']}", flush=True)
+                    continue
                 w0, c0 = time.time(), time.process_time()
                 res = run_episode(patient, int(target), dataclasses.replace(ep, policy=pol), planner, sim)
                 log = res.pop("log")
@@ -112,7 +129,7 @@ def main(argv=None) -> int:
     doc = {"command": "python benchmarks/navigation.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "merged_from": [docs_i["command"] for docs_i in docs] if args.merge else None,
            "output_dir": str(args.output_dir), "targets": plan, "episode": dataclasses.asdict(ep),
-           "planner": dataclasses.asdict(planner), "summary": summary, "episodes": rows,
+           "planner": dataclasses.asdict(planner), "simulate": dataclasses.asdict(sim), "summary": summary, "episodes": rows,
            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
            "units": {"time": "s", "length": "mm", "force": "N"}}
     res_dir = ROOT / "benchmarks" / "results"
@@ -179,7 +196,7 @@ def table(doc: dict) -> str:
     for r in doc["episodes"]:
         L.append(f"| {r['patient']} | {r['target']} | {r['policy']} | {r['outcome']} | {r['time_s']:.1f} | "
                  f"{r['path_length_mm']:.1f} | {r['peak_contact_force_n']:.3f} | {r['min_wall_clearance_mm']:.2f} | "
-                 f"{r['generation_reached']} | {1e3 * r['cpu_per_step_s']['total']:.0f} | {r['wall_s']:.0f} | "
+                 f"{r['generation_reached']} | {1e3 * r['cpu_per_step_s']['total']:.0f} | {r['wall_s']:.0f}{' (reused)' if r.get('reused_from') else ''} | "
                  f"{r['load_avg_1min']:.1f} |")
     L += ["", "Min wall clearance: distance from the scope's backbone to the true lumen surface minus the scope "
           "radius, every control step (negative: the soft contact's penetration). CPU per step: "

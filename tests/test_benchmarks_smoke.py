@@ -94,6 +94,7 @@ NO_SMOKE = {
     "medial_axis.py": "no size option below one phantom per seed",
     "mesh_decimation.py": "no options",
     "navigation.py": "closed-loop episodes; no size option",
+    "navigation_contacts.py": "one whole closed-loop episode on a pipeline run's anatomy; no size option",
     "real_masks_chain.py": "the whole chain on every shared real mask",
     "realism.py": "needs a full default run and the real frames; no size option",
     "realism_refit.py": "renders two default sequences several times and runs the shared judges on the real "

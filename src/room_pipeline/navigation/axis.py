@@ -25,6 +25,7 @@ Frames and units: camera frame OpenCV (x right, y down, z forward), metres; dept
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 from scipy import ndimage
@@ -149,3 +150,38 @@ def axis_target(axis: LumenAxis, lookahead_m: float) -> tuple[np.ndarray, np.nda
     k = int(min(len(seg) - 1, np.searchsorted(cum, s, side="right") - 1))
     d = seg[k] / n[k]
     return L[k] + (s - cum[k]) * d, d
+
+
+def tube_clearance(point: np.ndarray, depth: np.ndarray, camera: CameraIntrinsics, tree, start_m: float = 1e-3,
+                   step_m: float = 5e-4, end_m: float = 0.0) -> float:
+    """Clearance of the straight segment from the camera to ``point`` (camera frame, m) in one depth map, m: the
+    smallest distance from its points (every ``step_m`` from ``start_m`` on) to the observed wall (``tree``: a
+    cKDTree of the back-projected cloud), or minus how far a point lies behind the observed surface (its pixel's
+    planar depth nearer than it: the segment goes through a wall the camera sees).  A scope of radius ``r``
+    can go straight to ``point`` when this is >= ``r``.  ``depth``: (H, W) planar depth, m (0 = no hit)."""
+    p = np.asarray(point, float).reshape(3)
+    n = float(np.linalg.norm(p))
+    if n <= start_m:
+        return math.inf
+    P = p[None, :] * (np.arange(start_m, n - end_m + 1e-12, step_m) / n)[:, None]
+    P = P[P[:, 2] > 1e-6]
+    if not len(P):
+        return math.inf
+    u, v = camera.project_normalized(P[:, 0] / P[:, 2], P[:, 1] / P[:, 2])
+    h, w = depth.shape
+    jj, ii = np.rint(u).astype(int), np.rint(v).astype(int)
+    inside = (jj >= 0) & (jj < w) & (ii >= 0) & (ii < h)
+    d = np.zeros(len(P))
+    d[inside] = np.asarray(depth, float)[ii[inside], jj[inside]]
+    behind = inside & (d > 0) & (d < P[:, 2])
+    if behind.any():
+        return -float((P[behind, 2] - d[behind]).max())
+    return float(tree.query(P)[0].min()) if tree is not None and tree.n else math.inf
+
+
+def wall_ahead(points: np.ndarray, radius_m: float) -> float:
+    """Planar depth of the nearest observed wall point within ``radius_m`` of the view axis (camera-frame cloud
+    ``points`` (N, 3), m): how far the scope, of that radius, can go straight on; inf when none."""
+    P = np.asarray(points, float).reshape(-1, 3)
+    m = np.hypot(P[:, 0], P[:, 1]) <= radius_m
+    return float(P[m, 2].min()) if m.any() else math.inf

@@ -57,7 +57,15 @@ Depth target ``axis`` (:mod:`.axis`)
     Logged per step: ``tip_mm`` / ``target_mm`` (world), ``route_error_mm`` (tip to the route's centreline), ``axis_target_mm`` /
     ``axis_split_mm`` (depth_target axis: the target in the camera frame, the fork's depth),
     ``trace_lag_mm`` (shaft path length minus insertion minus ``l``), ``tip_deflection_mm`` (simulated tip
-    minus the arc model's tip).
+    minus the arc model's tip), ``force_max_n`` / ``penetration_max_mm`` (the control period's peak summed contact
+    force and deepest contact over its physics steps), and from the depth map alone (depth policy): ``wall_ahead_mm``
+    (:func:`~.axis.wall_ahead`: the nearest observed wall within the scope radius + 0.5 mm of the view axis),
+    ``tube_clear_mm`` (:func:`~.axis.tube_clearance` of the straight segment to the held child) and ``child_deg``
+    (its angle off the view axis).
+    ``fork_child_deg`` > 0 (off by default): the held child's centre is the target only while it lies within that
+    angle of the view axis or nearer than ``fork_child_far_mm`` (planar depth); else (logged ``child_gated``) the axis
+    target: a child seen far and far aside means the branch curves toward it (traced: steering straight for it, the
+    far target underbends the segment and the tip presses the curve's wall; benchmarks/results/navigation_failures.md).
 
 Shaft
     ``shaft: lumen`` (default, :class:`LumenShaft`): the bending-segment base slides along the airway's
@@ -121,7 +129,7 @@ from ..robot.sim_params import SimParams
 from .airways import COMMANDS, Airways, Patient, check_target, generation_targets, operator_command, start_pose  # noqa: F401
 from .lumen import TrueLumen
 from .perception import back_project
-from .axis import axis_target, lumen_axis
+from .axis import axis_target, lumen_axis, tube_clearance, wall_ahead
 from .params import EpisodeParams  # noqa: F401 (also re-exported: the episode's parameters)
 from .planner import PlannerParams, choose_goal, free_centre, plan_path
 from .shaft import LumenShaft, Trace  # noqa: F401
@@ -284,6 +292,8 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 c1 = time.process_time()
                 cloud = back_project(depth, cam, 1)
                 tree = cKDTree(cloud.points) if len(cloud.points) else None
+                ahead = wall_ahead(cloud.points, sim.radius + 0.5 * MM)
+                info["wall_ahead_mm"] = round(ahead * 1e3, 3) if math.isfinite(ahead) else None
                 goal = choose_goal(cloud, planner, COMMANDS.get(word) if word else None, tree) if tree else None
                 if goal is None:
                     tgt, tan = p_tip, tip[:3, 2]
@@ -318,10 +328,17 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                         hold = tip[:3, :3] @ child_c + p_tip
                     if ax is not None:
                         pa, ta = axis_target(ax, params.lookahead_mm * MM)
-                        if near:                     # steer for the chosen child's centre itself (see fork_child_mm)
-                            pa, ta = child_c, child_c / np.linalg.norm(child_c)
-                        elif fc > 0 and prefer is not None:      # no commanded split this frame: the held child
-                            pa, ta = prefer, prefer / np.linalg.norm(prefer)
+                        direct = child_c if near else (prefer if fc > 0 and prefer is not None else None)
+                        if direct is not None:        # the chosen child's centre itself (see fork_child_mm)
+                            clear = tube_clearance(direct, depth, cam, tree)
+                            info["tube_clear_mm"] = round(clear * 1e3, 3) if math.isfinite(clear) else None
+                            off = math.atan2(math.hypot(direct[0], direct[1]), direct[2])    # off the view axis
+                            info["child_deg"] = round(math.degrees(off), 1)
+                            if params.fork_child_deg <= 0 or off <= math.radians(params.fork_child_deg) or \
+                                    direct[2] <= params.fork_child_far_mm * MM:
+                                pa, ta = direct, direct / np.linalg.norm(direct)
+                            else:       # far and far aside: the branch curves; the axis through the curve first
+                                info["child_gated"] = True
                         tgt, tan = tip[:3, :3] @ pa + p_tip, tip[:3, :3] @ ta
                         info["axis_target_mm"] = [round(float(x) * 1e3, 3) for x in pa]   # camera frame
                         info["axis_split_mm"] = None if ax.split_m is None else round(ax.split_m * 1e3, 1)
@@ -364,7 +381,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             c2 = time.process_time()
             signal.add(t + ctrl_dt, q)
             sim.update_friction()
-            f_period = 0.0
+            f_period, pen_period = 0.0, 0.0
             for j in range(n_sub):
                 tj = t + (j + 1) * h
                 apply(act(tj), h, reset=(j == 0))
@@ -374,6 +391,7 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
                 if pen > sim_params.unstable_penetration_mm * MM:
                     tunnelled = True
                 f_period = max(f_period, f)
+                pen_period = max(pen_period, pen)
                 contact_steps += int(f > 0)
                 steps += 1
             c3 = time.process_time()
@@ -383,6 +401,8 @@ def run_episode(patient: Patient, target: int, params: EpisodeParams, planner: P
             info["cpu_s"] = round(c3 - c0, 5)
             info["q_cmd"] = [round(float(x), 7) for x in q]
             info["force_n"] = round(f, 5)
+            info["force_max_n"] = round(f_period, 5)                   # the period's peak, and its deepest contact
+            info["penetration_max_mm"] = round(pen_period * 1e3, 4)
             info["wall_clearance_mm"] = round((float((-sd).min()) - sim.radius) * 1e3, 3)
             info["tip_mm"] = [round(float(x) * 1e3, 3) for x in p_tip]        # world, for traces (not the policy's)
             info["target_mm"] = [round(float(x) * 1e3, 3) for x in tgt]

@@ -49,6 +49,9 @@ class EpisodeParams:
                                         # tip target is the chosen child's centre (0: off; see closed_loop)
     fork_slow_mm: float = 0.0           # depth_target axis: insert at fork_slow_factor of the speed while a fork is seen
     fork_slow_factor: float = 1.0       # ... nearer than this (0: off)
+    fork_child_deg: float = 0.0         # depth_target axis: the held child's centre is the tip target only while it lies
+    fork_child_far_mm: float = 15.0     # ... within this angle of the view axis or nearer (planar depth) than this; else
+                                        # the axis target (a child seen far and far aside: the branch curves); 0 deg: off
     sideways_deg: float = 45.0          # depth policy's point control: the roll is not held for a target more than
                                         # this off the held bending plane (0: always held near zero bending; the
                                         # oracle and darkest keep it held: with 45 the oracle took a wrong branch
@@ -70,7 +73,8 @@ class EpisodeParams:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"navigate.episode.{name} must be > 0, got {v!r}")
-        for name in ("wrong_branch_gap_mm", "retract_force_n", "sideways_deg", "fork_slow_mm", "fork_child_mm", "fork_slow_factor"):
+        for name in ("wrong_branch_gap_mm", "retract_force_n", "sideways_deg", "fork_slow_mm", "fork_child_mm", "fork_slow_factor",
+                     "fork_child_deg", "fork_child_far_mm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"navigate.episode.{name} must be >= 0, got {v!r}")
