@@ -6,7 +6,9 @@
 Runs :func:`room_pipeline.navigation.closed_loop.run_episode` (config ``navigate.episode`` / ``navigate.planner`` /
 ``simulate``, as ``room navigate episode``) with :class:`~room_pipeline.robot.pybullet_adapter.ScopeSim`'s contact
 query recorded at every physics step: the summed normal force (N), and of the deepest contact point its
-penetration (mm), link index, world position (mm) and contact normal (on the wall).  Prints the outcome and the
+penetration (mm), link index, world position (mm) and contact normal (on the wall); the tip link's position (mm)
+and speed (mm/s); and every contact point (``all``: link, penetration mm, normal force N, point on the wall mm,
+normal).  Prints the outcome and the
 last ``--steps`` records (default 30) before the episode ended; ``--out`` writes every record and the per-step
 control log as JSON.  Used for benchmarks/results/navigation_failures.md (session 13).
 """
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -43,9 +46,14 @@ def recorder(records: list):
             cps = [cp for w in self.walls for cp in p.getContactPoints(self.body, w, physicsClientId=self.cid)]
             if cps:
                 c = max(cps, key=lambda x: -x[8])
+                tip = p.getLinkState(self.body, self.capsules[-1], computeLinkVelocity=1, physicsClientId=self.cid)
                 records.append({"t_s": round(self._t, 4), "force_n": round(f, 5), "penetration_mm": round(pen * 1e3, 4),
                                 "points": len(cps), "link": c[3], "pos_mm": [round(x * 1e3, 2) for x in c[5]],
-                                "normal": [round(x, 3) for x in c[7]]})
+                                "normal": [round(x, 3) for x in c[7]],
+                                "tip_link_mm": [round(x * 1e3, 3) for x in tip[4]],
+                                "tip_link_speed_mm_s": round(math.sqrt(sum(v * v for v in tip[6])) * 1e3, 2),
+                                "all": [[cp[3], round(-cp[8] * 1e3, 4), round(cp[9], 5),
+                                         [round(x * 1e3, 2) for x in cp[6]], [round(x, 3) for x in cp[7]]] for cp in cps]})
             return f, pen
 
     return RecordingSim
