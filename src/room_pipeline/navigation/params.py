@@ -34,9 +34,9 @@ class EpisodeParams:
     wrong_branch_gap_mm: float = 1.0    # ... and this much nearer its centreline than the route's (sibling
                                         # centrelines run together for mm after a bifurcation)
     stall_time_s: float = 8.0           # failure: < 1 mm of insertion gained over this long
-    physics_step_s: float = 0.005       # replaces simulate.time_step_s: 10 ms is unstable in pressed contact
-                                        # (README, Pitfalls: the pressed probe reads 19 N for 0.5 N); measured
-                                        # here: 10 ms tunnelled at a carina (57 N), 5 ms did not
+    physics_step_s: float = 0.0025      # replaces simulate.time_step_s: 10 ms tunnelled at a carina (57 N); at 5 ms
+                                        # the bending segment wedged in a narrow gen-3 branch chattered (joint speeds
+                                        # 15-35 rad/s) until it diverged and went through the wall (session 14)
     slow_factor: float = 0.5            # insertion speed factor while the plan is not collision-free
     dark_quantile: float = 0.05         # darkest: pixels at or below this luminance quantile form the dark regions
     tip_control: str = "point"          # point: bend toward the look-ahead point; path: put the tip on the path;
