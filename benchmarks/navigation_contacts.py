@@ -7,10 +7,10 @@ Runs :func:`room_pipeline.navigation.closed_loop.run_episode` (config ``navigate
 ``simulate``, as ``room navigate episode``) with :class:`~room_pipeline.robot.pybullet_adapter.ScopeSim`'s contact
 query recorded at every physics step: the summed normal force (N), and of the deepest contact point its
 penetration (mm), link index, world position (mm) and contact normal (on the wall); the tip link's position (mm)
-and speed (mm/s); and every contact point (``all``: link, penetration mm, normal force N, point on the wall mm,
-normal).  Prints the outcome and the
-last ``--steps`` records (default 30) before the episode ended; ``--out`` writes every record and the per-step
-control log as JSON.  Used for benchmarks/results/navigation_failures.md (session 13).
+and speed (mm/s), the bending segment's fastest joint (rad/s) and largest joint error from its target (rad); and
+every contact point (``all``: link, penetration mm, normal force N, point on the wall mm, normal).  Prints the
+outcome and the last ``--steps`` records (default 30; 0: none) before the episode ended; ``--out`` writes every
+record and the per-step control log as JSON.  Used for benchmarks/results/navigation_failures.md (sessions 13, 14).
 """
 from __future__ import annotations
 
@@ -47,11 +47,14 @@ def recorder(records: list):
             if cps:
                 c = max(cps, key=lambda x: -x[8])
                 tip = p.getLinkState(self.body, self.capsules[-1], computeLinkVelocity=1, physicsClientId=self.cid)
+                th, om = self.joint_state()
                 records.append({"t_s": round(self._t, 4), "force_n": round(f, 5), "penetration_mm": round(pen * 1e3, 4),
                                 "points": len(cps), "link": c[3], "pos_mm": [round(x * 1e3, 2) for x in c[5]],
                                 "normal": [round(x, 3) for x in c[7]],
                                 "tip_link_mm": [round(x * 1e3, 3) for x in tip[4]],
                                 "tip_link_speed_mm_s": round(math.sqrt(sum(v * v for v in tip[6])) * 1e3, 2),
+                                "joint_speed_max_rad_s": round(float(abs(om).max()), 2),
+                                "joint_error_max_rad": round(float(abs(self.targets - th).max()), 4),
                                 "all": [[cp[3], round(-cp[8] * 1e3, 4), round(cp[9], 5),
                                          [round(x * 1e3, 2) for x in cp[6]], [round(x, 3) for x in cp[7]]] for cp in cps]})
             return f, pen
@@ -75,7 +78,7 @@ def main(argv=None) -> int:
     res = closed_loop.run_episode(patient, args.target, ep, planner, sim)
     print(f"{args.patient} target {args.target}: {res['outcome']} at {res['time_s']:.1f} s, peak force "
           f"{res['peak_contact_force_n']:.3f} N, generation {res['generation_reached']}, CPU {time.process_time() - c0:.0f} s")
-    for r in records[-args.steps:]:
+    for r in records[-args.steps:] if args.steps > 0 else []:
         print(json.dumps(r))
     if args.out:
         Path(args.out).write_text(json.dumps({"result": {k: v for k, v in res.items() if k != "log"},
