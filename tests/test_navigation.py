@@ -506,8 +506,8 @@ def test_episode_into_the_commanded_child_against_the_fork_flare(fork_child_mm):
     """The fork's flare: the trunk's last 25 mm widen 4 mm toward the +x child, so its cross-sections' centres lean
     that way; commanded left, the GT-depth policy enters the -x child at <= 0.5 N, with the default (fork_child_mm
     40: the child's centre is the target once the commanded fork is seen; the log shows it held) and with session
-    11's rule (0). Measured: both reach (17-20 s); the phantom's failures this fixed (benchmarks/results/
-    navigation.md) did not reproduce on this synthetic fork."""
+    11's rule (0). Measured at session 12's 5 ms physics step: both reach (17-20 s); the phantom's failures this
+    fixed (benchmarks/results/navigation.md) did not reproduce on this synthetic fork. Passes at 2.5 ms (session 14)."""
     mesh, graph = y_airway(flare=0.004)
     pat = Patient("y_flare", mesh, mesh, graph)
     res = run_episode(pat, 1, EpisodeParams(max_time_s=40.0, fork_child_mm=fork_child_mm), PlannerParams(), SimParams())
@@ -561,8 +561,9 @@ def test_episode_through_a_curving_branch_to_the_child_seen_far_aside():
     is 2.5 mm in radius) shows up to the side as the tip enters the curve; with 25 deg the held child's centre is
     not steered for while it is more than 25 deg off the view and more than 15 mm deep (the log says so:
     child_gated), the axis target takes the tip through the curve, and the GT-depth policy enters the inner child
-    with no contact over 0.5 N. Measured: reached in 21.7 s at 0.045 N (the default rule: 21.9 s, 0.047 N; this
-    synthetic branch does not reproduce the phantom's tunnelling, benchmarks/results/navigation_failures.md)."""
+    with no contact over 0.5 N. Measured at the 5 ms step: reached in 21.7 s at 0.045 N (the default rule: 21.9 s,
+    0.047 N; this synthetic branch does not reproduce the phantom's tunnelling, benchmarks/results/
+    navigation_failures.md). Passes at 2.5 ms (session 14's default)."""
     mesh, graph = curved_fork()
     pat = Patient("curve", mesh, mesh, graph)
     res = run_episode(pat, 3, EpisodeParams(max_time_s=40.0, fork_child_deg=25.0), PlannerParams(), SimParams())
@@ -580,7 +581,8 @@ def test_episode_through_a_curving_branch_to_the_child_seen_far_aside():
 def test_episode_in_a_straight_tube_reaches_the_target_without_contact_over_half_a_newton(policy):
     """The issue's bound: no contact over 0.5 N. At the simulate default of this round (mass x10, 5 ms) the
     ground-truth-depth policy grazes the 6 mm tube's wall (min clearance -0.011 mm, i.e. 11 um of soft-contact
-    penetration) on its way; a penetration past 0.1 mm would mean a real push into the wall."""
+    penetration) on its way; a penetration past 0.1 mm would mean a real push into the wall. Passes at the closed
+    loop's 2.5 ms step (session 14's default)."""
     mesh, C = tube(radius=0.006, straight=0.18)
     root = GraphBranch(0, -1, 0, C[:111], np.full(111, 0.006))
     child = GraphBranch(1, 0, 1, C[110:], np.full(len(C) - 110, 0.006))
