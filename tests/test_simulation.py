@@ -223,35 +223,6 @@ def test_max_bend_in_narrow_tube_touches_not_tunnels():
     assert np.all(sdf < -(2.5e-3 - 1.0e-3))             # the scope's surface penetrates < 1 mm
 
 
-@pytest.mark.parametrize("internal_edges", [False, True])
-def test_internal_edge_switch_turns_an_edge_contact_to_the_face_normal(internal_edges):
-    """The straight scope's tip 1 mm into a flat two-triangle wall whose shared edge passes 0.7 mm beside the tip's
-    axis; the wall faces away from the scope, as the airway meshes face out of the lumen.  The triangle the tip's
-    axis misses reports its contact at the edge, its normal tilted toward the tip (Bullet's capsule-triangle
-    contact); ``wall_internal_edges`` turns it to the face's normal and leaves the depths as they are."""
-    prm = SimParams(actuation=False, wall_internal_edges=internal_edges)
-    sim = ScopeSim(prm, G)
-    try:
-        sim.set_base(np.eye(4))                          # scope along +z from the origin, tip sphere to l + r
-        z = G.l + 0.5 * prm.scope_diameter_mm * MM - 1.0 * MM
-        L, c = 10 * MM, 0.7 * MM                         # shared edge: the diagonal y = x + c
-        V = np.array([[-L, -L + c, z], [L, -L + c, z], [L, L + c, z], [-L, L + c, z]])
-        sim.set_wall(V, np.array([[0, 1, 2], [0, 2, 3]]))   # counter-clockwise seen from +z: faces away from the scope
-        sim.reset_joints()
-        sim.step(1)
-        cps = sim.contact_points()
-    finally:
-        sim.close()
-    tilt = [math.degrees(math.acos(min(1.0, -n[2]))) for _, _, _, n in cps]
-    depth = max(d for _, d, _, _ in cps)
-    assert {link for link, _, _, _ in cps} == {sim.capsules[-1]}
-    assert depth == pytest.approx(1.0 * MM, abs=0.02 * MM)
-    if internal_edges:
-        assert max(tilt) < 0.5, tilt
-    else:
-        assert max(tilt) > 10.0, tilt                    # the edge contact's normal leans toward the tip
-
-
 def _full_bend_in_tube(prm: SimParams) -> tuple[float, float]:
     """The scope fully bent in a 4 mm tube (as above), settled: (contact force N, tip sdf m)."""
     tree, mesh = tube(length=0.12, radius=4e-3)

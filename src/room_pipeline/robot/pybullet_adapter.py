@@ -62,11 +62,8 @@ Airway
     distance of the planned path, extended back by the bending segment and the passive shaft;
     the run records how far inside the corridor the scope's surface stayed
     (``corridor_margin_mm``) and is redone with the corridor doubled if that went negative
-    (three times, then the whole mesh).  ``wall_internal_edges`` (default off): Bullet's internal-edge contact
-    adjustment (``GEOM_CONCAVE_INTERNAL_EDGE``: a contact near an edge shared by two triangles gets the face's
-    normal instead of one tilted toward the edge; its depth is not changed).  PyBullet adjusts front-face contacts
-    only and the airway meshes face out of the lumen, so with the switch the wall's winding is reversed.
-    The wall goes to Bullet in bodies of at most ``max_body_faces`` triangles (cut along the route), so no mesh size reaches
+    (three times, then the whole mesh).  The wall goes to Bullet in bodies of at most
+    ``max_body_faces`` triangles (cut along the route), so no mesh size reaches
     ``createCollisionShape``'s limit (131,708 faces passed, 200,914 failed).  With ``crop_mesh`` only the triangles whose
     centroid is within ``crop_radius_mm`` of the scope are loaded, and the crop is rebuilt
     when any scope point has moved more than ``crop_rebuild_mm`` since the last build.
@@ -234,19 +231,13 @@ class ScopeSim:
         self.wall_faces += int(len(faces))
         if len(faces) == 0:
             return
-        flags = p.GEOM_FORCE_CONCAVE_TRIMESH
-        if self.params.wall_internal_edges:
-            # PyBullet's internal-edge callback adjusts front-face contacts only; the airway meshes face out of the
-            # lumen (the scope touches their back faces), so the wall is loaded with its winding reversed
-            flags |= p.GEOM_CONCAVE_INTERNAL_EDGE
-            faces = faces[:, ::-1]
         for part in split_faces(vertices, faces, self.max_body_faces, order):
             F = faces[part]
             used, inv = np.unique(F.ravel(), return_inverse=True)
             try:
                 shape = p.createCollisionShape(p.GEOM_MESH, vertices=vertices[used].tolist(),
                                                indices=inv.astype(np.int64).tolist(),
-                                               flags=flags, physicsClientId=c)
+                                               flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
             except p.error:
                 shape = -1
             if shape < 0:

@@ -57,7 +57,6 @@ class SimParams:
     passive_shaft_links: int = 8
     shaft_bending_stiffness_nm2: float = 2.0e-3  # passive shaft EI, N m^2 (joint k = EI / link length)
     wall_margin_mm: float = 0.0             # Bullet collision margin of the airway mesh (inflates it; Bullet: 1 mm)
-    wall_internal_edges: bool = False       # Bullet's internal-edge contact adjustment on the wall (GEOM_CONCAVE_INTERNAL_EDGE)
     crop_mesh: bool = False                 # load only the triangles near the scope (no gain measured)
     crop_radius_mm: float = 12.0
     crop_rebuild_mm: float = 3.0
@@ -95,7 +94,7 @@ class SimParams:
             v = self.ik_direction_weight_mm
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"simulate.ik_direction_weight_mm must be >= 0 or null, got {v!r}")
-        for name in ("actuation", "crop_mesh", "insertion_by_velocity", "roll_hold_project", "wall_internal_edges"):
+        for name in ("actuation", "crop_mesh", "insertion_by_velocity", "roll_hold_project"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"simulate.{name} must be true or false, got {getattr(self, name)!r}")
         if self.track not in TRACK_MODES:

@@ -112,7 +112,6 @@ def robot_config(params: SimParams, geometry: ScopeGeometry) -> dict:
                                      "report.time_step_s, report.unstable_runs)",
                       "solver_iterations": params.solver_iterations, "gravity": params.gravity_m_s2,
                       "wall_collision_margin": params.wall_margin_mm * 1e-3,
-                      "wall_internal_edges": params.wall_internal_edges,
                       "mesh_crop": ({"radius": params.crop_radius_mm * 1e-3, "rebuild": params.crop_rebuild_mm * 1e-3}
                                     if params.crop_mesh else None)},
     }
