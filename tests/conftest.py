@@ -6,14 +6,19 @@ from pathlib import Path
 
 import pytest
 
-# bpy before anything can import pymeshlab: pymeshlab's Embree loaded first breaks bpy's (undefined symbol
-# rtcGetSceneTraversable; ../shared/DESIGN.md).  Loading bpy here, when installed, makes every test file
-# independent of the order pytest collects them in (test_collision.py decimates with pymeshlab, and
-# test_indirect.py / test_blender.py render with Cycles in the same process).
-try:
-    import bpy  # noqa: F401
-except ImportError:
-    pass
+
+def pytest_configure(config):
+    """bpy before anything can import pymeshlab: pymeshlab's Embree loaded first breaks bpy's (undefined symbol
+    rtcGetSceneTraversable; ../shared/DESIGN.md).  Loading bpy when pytest starts (before it collects any test
+    file), when installed, makes every test file independent of the order pytest collects them in
+    (test_collision.py decimates with pymeshlab, and test_indirect.py / test_blender.py render with Cycles in the
+    same process).  In this hook, not at import, so a child process that imports a test module for one of its
+    helpers (test_depth's fresh-process training) does not load bpy for nothing."""
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        pass
+
 
 # Hypothesis draws new examples on every run unless told not to; under CI (CI=true) it derandomises, so a
 # clean-clone run is reproducible.  A developer's run stays random and can still find new counter-examples.

@@ -160,7 +160,7 @@ def test_misses_that_move_between_rounds_back_the_reduction_off(monkeypatch):
         targets.append(target)
         return Mesh(mesh.vertices, mesh.faces[:target])    # the fake error below decides
 
-    def fake_error(a, b, n_samples=0, seed=0):
+    def fake_error(a, b, n_samples=0, seed=0, a_side=None):
         k = len(targets)
         kept = targets[-1] / n
         miss = 0.0 if kept >= 0.6 else 0.25

@@ -373,3 +373,32 @@ def test_look_at_is_a_right_handed_opencv_pose_even_when_down_is_parallel():
         np.testing.assert_array_equal(T[:3, 3], [1.0, 2.0, 3.0])
     # the image's down axis (camera y) leans toward the requested down direction
     assert look_at([0, 0, 0], [0, 0, 1], [0.2, 1.0, 0.0])[:3, 1] @ [0.2, 1.0, 0.0] > 0
+
+
+# --------------------------------------------------------------------------- Open3D without its viewer
+
+
+def test_open3d_loads_without_its_viewer_which_still_loads_on_demand():
+    """``open3d_adapter.o3d()`` defers ``open3d.visualization`` (dash, plotly, IPython: most of ``import open3d``'s
+    CPU): a fresh process that casts rays never imports them, and the viewer, asked for, is the whole package."""
+    import subprocess
+    import sys
+
+    code = r"""
+import sys, numpy as np
+from room_pipeline.geometry.open3d_adapter import MeshScene, o3d
+s = MeshScene(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]]))
+assert s.distance(np.array([[0.2, 0.2, 1.0]])).tolist() == [1.0]
+assert not {"dash", "plotly", "IPython"} & set(sys.modules), sorted({"dash", "plotly", "IPython"} & set(sys.modules))
+import open3d, open3d.visualization as vis
+assert o3d() is open3d and vis is open3d.visualization and callable(vis.draw_geometries)
+assert "dash" in sys.modules and callable(vis.draw_plotly) and vis.gui is sys.modules["open3d.visualization.gui"]
+print(" ".join(sorted(n for n in dir(vis) if not n.startswith("__"))))
+"""
+    deferred = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert deferred.returncode == 0, deferred.stderr
+    plain = subprocess.run([sys.executable, "-c", "import open3d.visualization as v; "
+                            "print(' '.join(sorted(n for n in dir(v) if not n.startswith('__'))))"],
+                           capture_output=True, text=True)
+    assert plain.returncode == 0, plain.stderr
+    assert deferred.stdout == plain.stdout

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import subprocess
 import sys
 from pathlib import Path
@@ -42,8 +43,11 @@ def textured_scene(mesh, poses, graph=None, **kw) -> Scene:
                  vertex_airway=air, **kw)
 
 
+@functools.cache
 def default_indirect():
-    """The render stage's default inter-reflection (conf/render: render.indirect_bounces, rays per point, seed)."""
+    """The render stage's default inter-reflection (conf/render: render.indirect_bounces, rays per point, seed).
+
+    Composed once per process (a Hydra compose is ~0.3 CPU s; the result is a frozen dataclass, shared)."""
     from room_pipeline.config.compose import compose, section
     from room_pipeline.render.params import RenderParams, indirect_config
 

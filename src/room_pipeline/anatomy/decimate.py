@@ -80,16 +80,25 @@ def _quadric(mesh: Mesh, target: int, opts: QuadricOptions, protect: np.ndarray 
     return Mesh(cm.vertex_matrix() / scale, cm.face_matrix().astype(np.int64))
 
 
-def two_sided_error(a: Mesh, b: Mesh, n_samples: int = 200_000, seed: int = 0) -> dict:
+def measured_side(m: Mesh, n_samples: int = 200_000, seed: int = 0) -> tuple[np.ndarray, MeshScene]:
+    """``m``'s points (vertices + seeded samples) and its distance scene, as :func:`two_sided_error` builds them."""
+    return surface_points(m, n_samples, seed), MeshScene.of(m, origin=m.vertices.mean(axis=0))
+
+
+def two_sided_error(a: Mesh, b: Mesh, n_samples: int = 200_000, seed: int = 0,
+                    a_side: tuple[np.ndarray, MeshScene] | None = None) -> dict:
     """One-sided distances both ways between surfaces ``a`` (e.g. the input) and ``b`` (its reduction).
 
+    ``a_side``: ``measured_side(a, n_samples, seed)`` when already built (the decimation's rounds share the
+    input's); the same points and scene, so the same distances.
     Returns points and distances (metres): ``a_pts``/``a_to_b`` (a's vertices + samples -> b) and
     ``b_pts``/``b_to_a``, plus ``max_mm``, ``p95_mm`` (of both sets together), ``a_to_b_max_mm``,
     ``b_to_a_max_mm``.
     """
-    pa, pb = surface_points(a, n_samples, seed), surface_points(b, n_samples, seed)
-    dab = MeshScene.of(b, origin=b.vertices.mean(axis=0)).distance(pa)
-    dba = MeshScene.of(a, origin=a.vertices.mean(axis=0)).distance(pb)
+    pa, scene_a = a_side if a_side is not None else measured_side(a, n_samples, seed)
+    pb, scene_b = measured_side(b, n_samples, seed)
+    dab = scene_b.distance(pa)
+    dba = scene_a.distance(pb)
     both = np.concatenate([dab, dba]) / MM
     return {"a_pts": pa, "a_to_b": dab, "b_pts": pb, "b_to_a": dba, "max_mm": float(both.max()),
             "p95_mm": float(np.percentile(both, 95)), "a_to_b_max_mm": float(dab.max() / MM),
@@ -126,6 +135,7 @@ def decimate_under_bound(mesh: Mesh, fraction: float, max_error_mm: float, p95_e
     reach = np.linalg.norm(mesh.vertices[mesh.faces] - cen[:, None], axis=2).max(axis=1)
     protect = np.zeros(n, bool)
     frac, radius = float(fraction), protect_radius_mm * MM
+    input_side = None                           # the input's points and scene, built once for every round
     for rnd in range(1, max_rounds + 1):
         free = n - int(protect.sum())
         target = max(8, int(round(protect.sum() + free * frac)))
@@ -140,7 +150,9 @@ def decimate_under_bound(mesh: Mesh, fraction: float, max_error_mm: float, p95_e
             t = mesh_topology(dec)
             ok_topo = bool(t["watertight"] and t["manifold"])
         if dec.n_faces >= 4:
-            e = two_sided_error(mesh, dec, n_samples)
+            if input_side is None:
+                input_side = measured_side(mesh, n_samples)
+            e = two_sided_error(mesh, dec, n_samples, a_side=input_side)
             ok_max = e["max_mm"] <= max_error_mm
             ok_p95 = p95_error_mm is None or e["p95_mm"] <= p95_error_mm
             if ok_max and ok_p95 and ok_topo and dec.n_faces >= n:      # every face protected: nothing gained

@@ -4,17 +4,65 @@ Open3D's ``RaycastingScene`` works in float32, so every scene is built in a loca
 vertices minus ``origin`` (by default the centre of its bounding box; callers that need the bytes of an
 earlier release pass the origin they used), and query points and ray origins are shifted the same way.
 Lengths are whatever the caller's mesh uses (metres in this project); results come back as float64
-numpy arrays.  Open3D is imported on first use only (it is heavy, and bpy's process must not load it).
+numpy arrays.  Open3D is imported on first use only (it is heavy, and bpy's process must not load it), and
+without its viewer: ``open3d/__init__.py`` imports ``open3d.visualization`` unconditionally, whose
+``draw_plotly`` imports dash, plotly and IPython (about 0.7-1.1 of the ~1.35 CPU s of ``import open3d``), none of
+which this project uses.  :func:`o3d` therefore registers ``open3d.visualization`` as a module that executes the
+real package into itself on its first attribute access (:class:`_DeferredModule`): ray casting and distances run
+the same compiled code either way, and the viewer still works when something asks for it.
 """
 from __future__ import annotations
 
+import importlib.util
+import os
+import sys
+import types
 from typing import Any
 
 import numpy as np
 
+_VIEWER = "open3d.visualization"
+
+
+class _DeferredModule(types.ModuleType):
+    """A package created from its spec but not yet executed: the first attribute it lacks executes it."""
+
+    def __getattr__(self, name: str) -> Any:
+        self.__class__ = types.ModuleType       # from here on a plain module (also if the execution fails)
+        self.__spec__.loader.exec_module(self)
+        return getattr(self, name)
+
+
+def _defer_viewer() -> None:
+    """Put an unexecuted ``open3d.visualization`` in ``sys.modules`` before ``import open3d`` (see the module
+    docstring).  Not inside IPython: ``open3d/__init__.py`` enables its web viewer in a Jupyter kernel."""
+    if "open3d" in sys.modules or _VIEWER in sys.modules or "IPython" in sys.modules:
+        return
+    spec = importlib.util.find_spec("open3d")
+    if spec is None or not spec.submodule_search_locations:
+        return
+    pkg = os.path.join(list(spec.submodule_search_locations)[0], "visualization")
+    viewer = importlib.util.spec_from_file_location(_VIEWER, os.path.join(pkg, "__init__.py"),
+                                                    submodule_search_locations=[pkg])
+    if viewer is None or viewer.loader is None:
+        return
+    module = importlib.util.module_from_spec(viewer)
+    module.__class__ = _DeferredModule
+    sys.modules[_VIEWER] = module
+
 
 def o3d() -> Any:
-    """The ``open3d`` module (imported on first call)."""
+    """The ``open3d`` module (imported on first call, its viewer deferred: the module docstring)."""
+    if "open3d" not in sys.modules:
+        _defer_viewer()
+        try:
+            import open3d
+        except BaseException:
+            if type(sys.modules.get(_VIEWER)) is _DeferredModule:
+                del sys.modules[_VIEWER]
+            raise
+        # `import open3d.visualization` found it in sys.modules, so the package attribute is not set yet
+        open3d.__dict__.setdefault("visualization", sys.modules[_VIEWER])
     import open3d
 
     return open3d
