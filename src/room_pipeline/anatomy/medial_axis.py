@@ -703,24 +703,46 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     # (median radius >= half the junction's radius; a real side branch of the trachea, e.g. a tracheal
     # bronchus, is narrower) and its lumen never leaves the lumen of the tree around it (_twig_inside_lumen:
     # from every medial point of it the straight way to the nearest point of another branch's skeleton
-    # stays inside the lumen, sdf < 0, sampled every 1/4 voxel) -- a line of
-    # the medial sheet of a flared carina or of a staircased oblique trachea (AirQuant resampled to 1 mm: a
-    # 20 mm twig of radius 8.9 mm), not a main bronchus (a wall, the carinal ridge, lies between the two main
-    # bronchi).  It is dropped and the root continues down the dividing sibling; repeated until the root's
-    # children all divide or one that ends leaves the lumen.
-    n_twigs = 0
+    # stays inside the lumen, sampled every 1/4 voxel) -- a line of the medial sheet of a flared carina or of
+    # a staircased oblique trachea (AirQuant resampled to 1 mm: a 20 mm twig of radius 8.9 mm), not a main
+    # bronchus (a wall, the carinal ridge, lies between the two main bronchi).  Both measured to the mask's
+    # resolution: on the twig's points at least a voxel inside the wall, the ways leaving the lumen by less
+    # than half a voxel (the staircase of voxel faces; CASE073, CASE091).  It is dropped and the root continues
+    # down the dividing sibling; repeated until the root's children all divide or one that ends leaves the
+    # lumen.  A child that divides is dropped the same way when its whole subtree passes (a medial sheet's
+    # network of lines: a flattened upper trachea above a round, wider one, under a root re-selected at its top)
+    # beside a dividing sibling that does not.
+    def subtree(c: int) -> list[int]:
+        out_, st = [], [c]
+        while st:
+            out_.append(st.pop())
+            st.extend(branches[out_[-1]]["children"])
+        return out_
+
+    def sheet_part(c: int) -> bool:
+        own = subtree(c)
+        nodes_ = [n for bid in own for n in branches[bid]["nodes"][1:]]
+        others_ = [n for bid, b in branches.items() if bid not in own for n in b["nodes"]]
+        return _twig_inside_lumen(pts[nodes_], rad[nodes_], float(rad[branches[c]["nodes"][0]]), pts[others_],
+                                  field, voxel)
+
+    n_twigs = n_sheet = 0
     while any(branches[c]["children"] for c in branches[0]["children"]):
         kids = branches[0]["children"]
-        others = lambda c: [n for bid, b in branches.items() if bid != c for n in b["nodes"]]  # noqa: E731
-        twig = next((c for c in kids if not branches[c]["children"]
-                     and np.median(rad[branches[c]["nodes"][1:]]) >= 0.5 * rad[branches[c]["nodes"][0]]
-                     and _twig_inside_lumen(pts[branches[c]["nodes"]], pts[others(c)], field, voxel)), None)
+        twig = next((c for c in kids if not branches[c]["children"] and sheet_part(c)), None)
+        if twig is None:
+            dividing = [c for c in kids if branches[c]["children"]]
+            parts = [c for c in dividing if sheet_part(c)] if len(dividing) >= 2 else []
+            twig = parts[0] if 0 < len(parts) < len(dividing) else None
+            n_sheet += twig is not None
         if twig is None:
             break
-        del branches[twig]
+        for bid in subtree(twig):
+            del branches[bid]
         kids.remove(twig)
         merge_into_parent_if_single(0)
         n_twigs += 1
+    rep["root_sheet_subtrees_dropped"] = n_sheet
     rep["root_twigs_dropped"] = n_twigs
     rep["n_branches_after_pruning"] = len(branches)
 
