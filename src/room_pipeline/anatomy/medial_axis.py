@@ -502,15 +502,21 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     wide_arms = [a for a, (_, w, far) in arms.items() if w >= keep_len and far >= keep_len]
     rep["root_arms"] = len(arms)
     rep["root_thin_arms_cut"] = 0
-    if len(wide_arms) == 1 and len(arms) > 1:
+
+    def cut_thin_arms(root: int, arms: dict, wide_arms: list) -> int:
+        """One wide arm: cut the root's other arms off the skeleton (in place); how many were cut."""
+        if not (len(wide_arms) == 1 and len(arms) > 1):
+            return 0
         thin = np.zeros(M, dtype=bool)
         thin[[a for a in arms if a not in wide_arms]] = True
         for n in np.flatnonzero(in_skel)[np.argsort(dist[in_skel], kind="stable")]:
             if skel_parent[n] >= 0 and thin[skel_parent[n]]:
                 thin[n] = True
-        in_skel &= ~thin
+        in_skel[thin] = False
         skel_parent[thin] = -1
-        rep["root_thin_arms_cut"] = len(arms) - 1
+        return len(arms) - 1
+
+    rep["root_thin_arms_cut"] = cut_thin_arms(root, arms, wide_arms)
     n_children = np.bincount(skel_parent[skel_parent >= 0], minlength=M)
     rep["root_entry_bifurcation"] = False
     entry = None
@@ -610,8 +616,15 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         cand = wide if len(wide) else ends
         if len(cand):
             root = int(cand[np.argmax(pts[cand, 2])])
-            in_skel, skel_parent, n_paths, _ = skeleton(root)
+            in_skel, skel_parent, n_paths, dist = skeleton(root)
             rep["root_reselected"] = True
+            # the re-selected root is the trachea's free end: the same arms rule (a skeleton grown from the top
+            # of a cut trachea can leave it along the cut's rim too: CASE091 resampled to 0.5 mm, a 12.6 mm arm
+            # of median radius 1.8 mm beside the 5.6 mm trachea, and the root branch came out of zero length)
+            arms = _root_arms(root, in_skel, skel_parent, dist, pts, rad, 0.5 * float(rad[root]))
+            keep_len = params.prune_factor * float(rad[root])
+            rep["root_reselected_thin_arms_cut"] = cut_thin_arms(
+                root, arms, [a for a, (_, w, far) in arms.items() if w >= keep_len and far >= keep_len])
     rep["n_paths"] = n_paths
     rep["root_point_m"] = pts[root].round(6).tolist()
     rep["root_radius_mm"] = round(float(rad[root]) / 1e-3, 3)
