@@ -284,7 +284,14 @@ def main() -> None:
     ap.add_argument("--work", default=str(Path(os.environ.get("TMPDIR", "/tmp")) / "room_real_tree_robustness"))
     ap.add_argument("--cached-only", action="store_true",
                     help="run nothing: write the tables from the cases already cached under --work (a partial run)")
+    ap.add_argument("--previous", default=None,
+                    help="with --cached-only: a results JSON of an earlier run whose rows stand, marked '(prev)', for "
+                         "the cases not cached here (those not re-run)")
     args = ap.parse_args()
+    prev = {}
+    if args.previous:
+        prev = {(r["mask"], r["case"]): r for r in json.loads(Path(args.previous).read_text())["rows"]
+                if not r.get("not_run")}
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -305,7 +312,12 @@ def main() -> None:
                     row.update(summarise(cdir / "out", row["exit"], (cdir / "room_run.log").read_text(), ref,
                                          perturb_map(name, case, vol)))
             elif args.cached_only:
-                rows.append({"mask": name, "case": case, "not_run": True})
+                if prev and case == "original":       # nothing of this mask re-run: all its rows from --previous
+                    rows += [{**prev[(name, c)], "previous": True} if (name, c) in prev else
+                             {"mask": name, "case": c, "not_run": True} for c in cases]
+                    break
+                rows.append({**prev[(name, case)], "previous": True} if (name, case) in prev else
+                            {"mask": name, "case": case, "not_run": True})
                 if case == "original":
                     break
                 continue
@@ -363,7 +375,8 @@ def write_tables(rows: list[dict], args) -> None:
             continue
         fail = f"{r.get('failed_stage')}: {r.get('message', '')}" if r["exit"] else (
             "rendered " + str(r.get("render")) if r.get("rendered") else "")
-        lines.append(f"| {r['mask']} | {r['case']} | {'x'.join(map(str, r['shape']))} | "
+        lines.append(f"| {r['mask']} | {r['case']}{' (prev)' if r.get('previous') else ''} | "
+                     f"{'x'.join(map(str, r['shape']))} | "
                      f"{'/'.join(f'{v:g}' for v in r['spacing_mm'])} | {r['exit']} | "
                      f"{r.get('root_start_to_true_trachea_mm', '')} | {r.get('root_end_to_true_carina_mm', '')} | "
                      f"{r.get('root_length_mm', '')} | {r.get('root_entry_bifurcation', '')} | "
@@ -371,8 +384,10 @@ def write_tables(rows: list[dict], args) -> None:
                      f"{fail.replace('|', '/')} | {r['cpu_s']} |")
     ran = [r for r in rows if not r.get("not_run")]
     n_fail = sum(1 for r in ran if r["exit"])
-    lines += ["", f"{len(ran)} cases, {n_fail} failed" + (f"; {len(rows) - len(ran)} not run." if len(ran) < len(rows)
-                                                         else ".")]
+    n_prev = sum(1 for r in ran if r.get("previous"))
+    lines += ["", f"{len(ran)} cases, {n_fail} failed" + (f"; {len(rows) - len(ran)} not run" if len(ran) < len(rows)
+                                                         else "")
+              + (f"; {n_prev} rows '(prev)' from {args.previous} (not re-run here)." if n_prev else ".")]
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "real_tree_robustness.md").write_text("\n".join(lines) + "\n")
     (RESULTS / "real_tree_robustness.json").write_text(json.dumps(

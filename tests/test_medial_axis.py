@@ -611,6 +611,97 @@ def test_a_real_side_branch_of_the_trachea_stays_a_branch(length_mm, radius_mm):
     assert sorted(len(g.children(c.id)) for c in kids) == [0, 2]
 
 
+def _narrowed_top_mask(h: float = 0.8, a_top: float = 10.0, b_top: float = 4.0) -> Volume:
+    """A trachea cut by the scan's top (z = 20 mm) whose upper part is flattened and narrower than its lower part
+    (CASE091 resampled: round, radius 7.9 mm, low down; aspect 1.5-1.7 and inscribed radius 3.9-5.3 mm in its
+    upper 20 mm): round (7.5 mm) below z = -20, flattened above z = -5 to an ellipse ``a_top`` x ``b_top`` mm
+    (long axis along x), linear between; the axis leans 20 deg toward +y going up; carina at z = -45, main
+    bronchi 5.5 mm, 34 deg from vertical, 35 mm long.  All lengths in mm, affine in metres."""
+    x, y, z = np.arange(-45, 45.01, h), np.arange(-20, 30.01, h), np.arange(-80, 20.01, h)
+    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
+    f = np.clip((Z + 20.0) / 15.0, 0.0, 1.0)
+    yc = np.tan(np.deg2rad(20.0)) * (Z + 45.0)
+    m = (Z >= -45) & ((X / (7.5 + (a_top - 7.5) * f)) ** 2 + ((Y - yc) / (7.5 + (b_top - 7.5) * f)) ** 2 <= 1.0)
+    for sx in (-1.0, 1.0):
+        d = np.array([sx * np.sin(0.6), 0.0, -np.cos(0.6)])
+        t = np.clip(X * d[0] + (Z + 45) * d[2], 0, 35)
+        m |= (X - t * d[0]) ** 2 + Y ** 2 + (Z + 45 - t * d[2]) ** 2 <= 5.5 ** 2
+    aff = np.diag([h * MM] * 3 + [1.0])
+    aff[:3, 3] = [x[0] * MM, y[0] * MM, z[0] * MM]
+    return Volume(m.astype(np.uint8), aff)
+
+
+def test_a_flattened_upper_trachea_above_a_wider_one_gives_a_root_to_the_carina():
+    """Issue #18 (CASE091 resampled to 0.8 / 0.5 mm: 'no trachea-like root: the widest part of the airway tree has
+    no free end'): the trachea's wide part tops out mid-tube with an arm rising into a narrower, flattened upper
+    trachea (20 x 8 mm at the cut, inscribed 4 mm: below the root-radius cut of the wide part's 7.5 mm), so the
+    root is re-selected at the most superior wide free end, on the edge of the upper part's medial sheet; the
+    skeleton grown from there divided at once into the trunk and the sheet's network of lines, and the root
+    branch came out of zero length.  The sheet's lines are dropped like twigs (a whole subtree as wide as the
+    trachea's medial line whose ways into the rest of the tree stay in the lumen,
+    ``root_sheet_subtrees_dropped``): the route starts at the cut, inside the trachea, and the root runs down to
+    the bifurcation of the main bronchi."""
+    vol = _narrowed_top_mask()
+    res = extract_medial_axis(compute_sdf(vol, SdfParams()), MedialAxisParams())
+    g = res.graph
+    check_tree(g)
+    rep = {k: v for k, v in res.report.items() if k.startswith("root") or k.startswith("trachea")}
+    assert rep["root_reselected"] is True and rep["root_centred"] is False, rep
+    assert rep["root_sheet_subtrees_dropped"] >= 1, rep
+    start, end = g.root.points[0] / MM, g.root.points[-1] / MM
+    yc = np.tan(np.deg2rad(20.0)) * (start[2] + 45.0)
+    assert start[2] > 17.0 and (start[0] / 10.0) ** 2 + ((start[1] - yc) / 4.0) ** 2 < 1.0, (start, rep)   # at the cut
+    assert -45.0 < end[2] < -30.0 and np.hypot(end[0], end[1]) < 4.0, (end, rep)   # the main bronchi's junction
+    ends = sorted(np.sign(b.points[-1][0]) for b in g.leaves() if b.points[-1][2] < -65 * MM)
+    assert ends == [-1, 1] and len(g.children(g.root.id)) == 2, [(b.id, b.parent, b.points[-1] / MM) for b in g.branches]
+
+
+def test_the_twig_rule_measures_to_the_masks_resolution():
+    """Issue #18 (CASE073 / CASE091 as stored, Med-MPD 2 / AirQuant resampled: the root stopped at a trachea-wide
+    terminal twig 48-102 mm above the carina; CASE091 at 0.8 mm had no root at all): the twig rule's straight
+    ways from the twig's last points, 0.2-0.3 mm inside a wall of 0.66-0.8 mm voxels, left the lumen by
+    0.012-0.95 mm.  The rule now measures to the mask's resolution (``_twig_measure``): points less than a voxel
+    inside the wall are left out (of the width too), and a way may leave the lumen by less than half a voxel
+    (``TWIG_EXIT_VOXELS``: a binary mask's wall is a staircase of voxel faces).  On an analytic SDF (a tube of
+    radius 6 voxels with a sheet of ``b`` voxels outside the lumen where the twig's ways cross it): b = 0.3
+    passes, 0.7 does not; a point 0.06 voxel inside the wall whose way leaves the lumen by 2 voxels is left out;
+    a twig narrower than half the junction is kept whatever its ways."""
+    from room_pipeline.anatomy.sdf_field import SdfField
+    from room_pipeline.anatomy.trachea_root import TWIG_EXIT_VOXELS, _twig_inside_lumen, _twig_measure
+
+    v = 1e-3                                                           # voxel: 1 mm
+    g = np.arange(-12, 13) * v
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    aff = np.diag([v, v, v, 1.0])
+    aff[:3, 3] = g[0]
+
+    def field(b: float) -> SdfField:
+        sdf = np.hypot(X, Y) - 6 * v                                   # a tube along z, radius 6 voxels
+        sheet = (np.abs(X - 2.5 * v) < 0.6 * v) & (Y > 1.5 * v)        # grid planes x = 2, 3 where y >= 2
+        return SdfField(np.where(sheet & (sdf < 0), b * v, sdf).astype(np.float32), aff)
+
+    trunk = np.stack([np.zeros(9), np.zeros(9), np.arange(-4, 5) * v], axis=1)
+    rad_of = lambda p: 6 * v - np.hypot(p[:, 0], p[:, 1])              # noqa: E731
+    twig = np.array([[3.3, 3.6, 0.0], [3.4, 3.2, 0.0]]) * v           # 1.12, 1.33 voxels inside the wall
+    for b, inside in ((0.3, True), (0.7, False)):
+        f = field(b)
+        width, exit_vox = _twig_measure(twig, rad_of(twig), 2.0 * v, trunk, f, v)
+        assert width >= 0.5 and exit_vox == pytest.approx(b, abs=1e-6), (b, width, exit_vox)
+        assert (exit_vox < TWIG_EXIT_VOXELS) is inside
+        assert _twig_inside_lumen(twig, rad_of(twig), 2.0 * v, trunk, f, v) is inside
+    # a last point 0.06 voxel inside the wall whose way to the trunk leaves the lumen by 2 voxels: left out
+    f = field(2.0)
+    shallow = np.array([[4.2, 4.2, 0.0]]) * v
+    way = shallow + np.linspace(0.0, 1.0, 41)[:, None] * (trunk[4] - shallow)
+    assert f.sample(f.to_index(way))[:, 0].max() == pytest.approx(2.0 * v, rel=1e-6)
+    assert rad_of(shallow)[0] < v and _twig_measure(shallow, rad_of(shallow), 2.0 * v, trunk, f, v)[1] == np.inf
+    deep = np.array([[1.0, 1.0, 0.0]]) * v
+    both = np.vstack([deep, shallow])
+    assert _twig_measure(both, rad_of(both), 2.0 * v, trunk, f, v)[1] < 0
+    # narrower than half the junction: a side branch, kept whatever its ways
+    assert not _twig_inside_lumen(deep, np.array([1.2 * v]), 2.5 * v, trunk, field(0.0), v)
+
+
 @pytest.mark.parametrize("n_islands", [10, 90])
 def test_root_is_the_trachea_among_many_small_islands(n_islands):
     """Issue #18 item 2: airway-model outputs carry 10-90 small disconnected islands (here balls of 1-2.5 mm

@@ -502,15 +502,21 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     wide_arms = [a for a, (_, w, far) in arms.items() if w >= keep_len and far >= keep_len]
     rep["root_arms"] = len(arms)
     rep["root_thin_arms_cut"] = 0
-    if len(wide_arms) == 1 and len(arms) > 1:
+
+    def cut_thin_arms(root: int, arms: dict, wide_arms: list) -> int:
+        """One wide arm: cut the root's other arms off the skeleton (in place); how many were cut."""
+        if not (len(wide_arms) == 1 and len(arms) > 1):
+            return 0
         thin = np.zeros(M, dtype=bool)
         thin[[a for a in arms if a not in wide_arms]] = True
         for n in np.flatnonzero(in_skel)[np.argsort(dist[in_skel], kind="stable")]:
             if skel_parent[n] >= 0 and thin[skel_parent[n]]:
                 thin[n] = True
-        in_skel &= ~thin
+        in_skel[thin] = False
         skel_parent[thin] = -1
-        rep["root_thin_arms_cut"] = len(arms) - 1
+        return len(arms) - 1
+
+    rep["root_thin_arms_cut"] = cut_thin_arms(root, arms, wide_arms)
     n_children = np.bincount(skel_parent[skel_parent >= 0], minlength=M)
     rep["root_entry_bifurcation"] = False
     entry = None
@@ -610,8 +616,15 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         cand = wide if len(wide) else ends
         if len(cand):
             root = int(cand[np.argmax(pts[cand, 2])])
-            in_skel, skel_parent, n_paths, _ = skeleton(root)
+            in_skel, skel_parent, n_paths, dist = skeleton(root)
             rep["root_reselected"] = True
+            # the re-selected root is the trachea's free end: the same arms rule (a skeleton grown from the top
+            # of a cut trachea can leave it along the cut's rim too: CASE091 resampled to 0.5 mm, a 12.6 mm arm
+            # of median radius 1.8 mm beside the 5.6 mm trachea, and the root branch came out of zero length)
+            arms = _root_arms(root, in_skel, skel_parent, dist, pts, rad, 0.5 * float(rad[root]))
+            keep_len = params.prune_factor * float(rad[root])
+            rep["root_reselected_thin_arms_cut"] = cut_thin_arms(
+                root, arms, [a for a, (_, w, far) in arms.items() if w >= keep_len and far >= keep_len])
     rep["n_paths"] = n_paths
     rep["root_point_m"] = pts[root].round(6).tolist()
     rep["root_radius_mm"] = round(float(rad[root]) / 1e-3, 3)
@@ -703,24 +716,46 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     # (median radius >= half the junction's radius; a real side branch of the trachea, e.g. a tracheal
     # bronchus, is narrower) and its lumen never leaves the lumen of the tree around it (_twig_inside_lumen:
     # from every medial point of it the straight way to the nearest point of another branch's skeleton
-    # stays inside the lumen, sdf < 0, sampled every 1/4 voxel) -- a line of
-    # the medial sheet of a flared carina or of a staircased oblique trachea (AirQuant resampled to 1 mm: a
-    # 20 mm twig of radius 8.9 mm), not a main bronchus (a wall, the carinal ridge, lies between the two main
-    # bronchi).  It is dropped and the root continues down the dividing sibling; repeated until the root's
-    # children all divide or one that ends leaves the lumen.
-    n_twigs = 0
+    # stays inside the lumen, sampled every 1/4 voxel) -- a line of the medial sheet of a flared carina or of
+    # a staircased oblique trachea (AirQuant resampled to 1 mm: a 20 mm twig of radius 8.9 mm), not a main
+    # bronchus (a wall, the carinal ridge, lies between the two main bronchi).  Both measured to the mask's
+    # resolution: on the twig's points at least a voxel inside the wall, the ways leaving the lumen by less
+    # than half a voxel (the staircase of voxel faces; CASE073, CASE091).  It is dropped and the root continues
+    # down the dividing sibling; repeated until the root's children all divide or one that ends leaves the
+    # lumen.  A child that divides is dropped the same way when its whole subtree passes (a medial sheet's
+    # network of lines: a flattened upper trachea above a round, wider one, under a root re-selected at its top)
+    # beside a dividing sibling that does not.
+    def subtree(c: int) -> list[int]:
+        out_, st = [], [c]
+        while st:
+            out_.append(st.pop())
+            st.extend(branches[out_[-1]]["children"])
+        return out_
+
+    def sheet_part(c: int) -> bool:
+        own = subtree(c)
+        nodes_ = [n for bid in own for n in branches[bid]["nodes"][1:]]
+        others_ = [n for bid, b in branches.items() if bid not in own for n in b["nodes"]]
+        return _twig_inside_lumen(pts[nodes_], rad[nodes_], float(rad[branches[c]["nodes"][0]]), pts[others_],
+                                  field, voxel)
+
+    n_twigs = n_sheet = 0
     while any(branches[c]["children"] for c in branches[0]["children"]):
         kids = branches[0]["children"]
-        others = lambda c: [n for bid, b in branches.items() if bid != c for n in b["nodes"]]  # noqa: E731
-        twig = next((c for c in kids if not branches[c]["children"]
-                     and np.median(rad[branches[c]["nodes"][1:]]) >= 0.5 * rad[branches[c]["nodes"][0]]
-                     and _twig_inside_lumen(pts[branches[c]["nodes"]], pts[others(c)], field, voxel)), None)
+        twig = next((c for c in kids if not branches[c]["children"] and sheet_part(c)), None)
+        if twig is None:
+            dividing = [c for c in kids if branches[c]["children"]]
+            parts = [c for c in dividing if sheet_part(c)] if len(dividing) >= 2 else []
+            twig = parts[0] if 0 < len(parts) < len(dividing) else None
+            n_sheet += twig is not None
         if twig is None:
             break
-        del branches[twig]
+        for bid in subtree(twig):
+            del branches[bid]
         kids.remove(twig)
         merge_into_parent_if_single(0)
         n_twigs += 1
+    rep["root_sheet_subtrees_dropped"] = n_sheet
     rep["root_twigs_dropped"] = n_twigs
     rep["n_branches_after_pruning"] = len(branches)
 

@@ -396,15 +396,44 @@ def _sheet_trunk(root: int, on_sheet: np.ndarray, pts: np.ndarray, rad: np.ndarr
     return np.array(trunk, dtype=np.int64)
 
 
-def _twig_inside_lumen(twig: np.ndarray, others: np.ndarray, field: _Field, voxel: float) -> bool:
-    """True when a branch's lumen never leaves the lumen around the other branches: from each of the twig's
-    skeleton points (metres, (N, 3)) the straight segment to the nearest of ``others`` (metres, (M, 3)) lies
-    inside the lumen (sdf < 0 at samples every ``voxel`` / 4 m).  A real branch is parted from its siblings
-    by a wall (a carinal ridge) that such a segment crosses."""
-    if len(twig) == 0 or len(others) == 0:
-        return False
-    _, j = cKDTree(others).query(twig)
-    d = float(np.linalg.norm(others[j] - twig, axis=1).max())
+#: a twig's straight ways to the rest of the tree count as inside the lumen when they leave it by less than this
+#: many voxels: a binary mask places its wall only to the voxel (a staircase of voxel faces, half a voxel either
+#: side of the wall it samples).  CASE073 as stored: its trachea's twig's ways leave by 0.30 voxel (0.20 mm)
+TWIG_EXIT_VOXELS = 0.5
+
+
+def _twig_measure(twig: np.ndarray, twig_rad: np.ndarray, r_junction: float, others: np.ndarray, field: _Field,
+                  voxel: float, width_only: bool = False) -> tuple[float, float]:
+    """A branch (or subtree) hanging off the trachea, measured on its skeleton points (metres, (N, 3), radii
+    ``twig_rad``, without the junction) that lie at least one voxel inside the wall (radius >= ``voxel``): the
+    points nearer the wall are not resolved by the mask (a twig's last points run into the staircase of voxel
+    faces, 0.2-0.3 mm inside it at 0.66-0.8 mm voxels on CASE073 / CASE091, and their straight ways cut its
+    steps).  Returns their median radius over the junction's ``r_junction`` (its width) and, in voxels, the
+    largest sdf on the straight segments from each of them to the nearest of ``others`` (metres, (M, 3); sampled
+    every ``voxel`` / 4): how far the ways out of its lumen into the rest of the tree's leave the lumen (< 0:
+    never; not measured, inf, with ``width_only``).  (nan, inf) when no point is that deep."""
+    deep = twig_rad >= voxel
+    if not deep.any() or len(others) == 0:
+        return float("nan"), float("inf")
+    width = float(np.median(twig_rad[deep])) / r_junction
+    if width_only:
+        return width, float("inf")
+    q = twig[deep]
+    _, j = cKDTree(others).query(q)
+    d = float(np.linalg.norm(others[j] - q, axis=1).max())
     t = np.linspace(0.0, 1.0, max(2, int(np.ceil(d / (0.25 * voxel)))) + 1)[:, None, None]
-    seg = (twig[None] + t * (others[j] - twig)[None]).reshape(-1, 3)
-    return bool(np.all(field.sample(field.to_index(seg))[:, 0] < 0))
+    seg = (q[None] + t * (others[j] - q)[None]).reshape(-1, 3)
+    return width, float(field.sample(field.to_index(seg))[:, 0].max()) / voxel
+
+
+def _twig_inside_lumen(twig: np.ndarray, twig_rad: np.ndarray, r_junction: float, others: np.ndarray,
+                       field: _Field, voxel: float) -> bool:
+    """True when a branch hanging off the trachea is part of the trachea's medial set, to the mask's resolution
+    (:func:`_twig_measure`): as wide as the trachea's medial line (median radius >= half the junction's; a real
+    side branch, e.g. a tracheal bronchus, is narrower) and its lumen never leaves the lumen around the other
+    branches: from each of its points the straight way to the nearest point of another branch's skeleton stays
+    within ``TWIG_EXIT_VOXELS`` of the lumen.  A real branch is parted from its siblings by a wall (a carinal
+    ridge) that such a way crosses."""
+    if not _twig_measure(twig, twig_rad, r_junction, others, field, voxel, width_only=True)[0] >= 0.5:
+        return False
+    return bool(_twig_measure(twig, twig_rad, r_junction, others, field, voxel)[1] < TWIG_EXIT_VOXELS)
