@@ -90,6 +90,8 @@ NO_SMOKE = {
     "anatomy_memory.py": "runs the anatomy chain on a real mask up to a stage; no smaller input option",
     "real_tree_robustness.py": "the anatomy chain on perturbed real masks: minutes per case even for one",
     "collision_corridor.py": "no size option; owned by the collision work in progress",
+    "collision_face_order.py": ("five whole simulations of the test phantom (minutes of PyBullet); it measures the "
+                                "floor under test_collision_corridor, which runs the same code"),
     "evaluation_budget.py": "times the evaluation stages on a full default run",
     "medial_axis.py": "no size option below one phantom per seed",
     "mesh_decimation.py": "no options",

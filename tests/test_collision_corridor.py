@@ -101,7 +101,11 @@ def test_route_corridor_keeps_faces_near_the_route_and_large_triangles_reaching_
 
 
 def test_corridor_matches_whole_mesh_on_phantom(phantom):  # noqa: F811
-    """Where the whole mesh fits, the corridor gives the same poses within 0.05 mm (issue #17 item 4)."""
+    """Where the whole mesh fits, the corridor gives the same poses as the whole mesh (issue #17 item 4), to within
+    what the order of the wall's triangles alone moves them: the whole mesh with its faces permuted moves the tip by
+    up to 0.133 mm (frame 243; 95th percentile 0.011-0.016 mm over four orders), the corridor by 0.131 mm (p95 0.014):
+    ``python benchmarks/collision_face_order.py``, benchmarks/results/collision_face_order.md.  A bound of 0.05 mm
+    on the maximum held on earlier machines by chance of the contact order and failed on others."""
     tree, tr, mesh = phantom
     full = simulate(tr, mesh, SimParams(collision_corridor_mm=0.0), G)
     corr = simulate(tr, mesh, SimParams(), G)
@@ -109,7 +113,8 @@ def test_corridor_matches_whole_mesh_on_phantom(phantom):  # noqa: F811
     assert rep["corridor_faces"] < mesh.n_faces and rep["corridor_margin_mm"] > 0
     assert corr.report["corridor_widened"] == []
     d = np.linalg.norm(full.tip_poses[:, :3, 3] - corr.tip_poses[:, :3, 3], axis=1)
-    assert d.max() < 0.05e-3, d.max()
+    assert np.percentile(d, 95) < 0.05e-3, np.percentile(d, 95)
+    assert d.max() < 0.2e-3, d.max()                    # face order alone: up to 0.133 mm (docstring)
 
 
 def test_corridor_too_narrow_is_widened(phantom):  # noqa: F811
