@@ -20,6 +20,25 @@ def pytest_configure(config):
         pass
 
 
+def pytest_addoption(parser):
+    parser.addoption("--exhaustive", action="store_true", default=False,
+                     help="also run the tests marked 'exhaustive' (every shared real mask through every stage, every "
+                          "signal x stage interruption, every navigation episode; about an hour more on 2 cores)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The exhaustive tier is skipped, with the reason, unless ``--exhaustive`` (or ROOM_TEST_EXHAUSTIVE=1).
+
+    ``./dev.sh test`` (what CI runs) keeps one representative of each exhaustive family: one real mask through
+    every stage, one interruption per stage, one navigation episode per scene; ``--exhaustive`` adds the rest."""
+    if config.getoption("--exhaustive") or os.environ.get("ROOM_TEST_EXHAUSTIVE", "") in ("1", "true", "yes"):
+        return
+    skip = pytest.mark.skip(reason="exhaustive tier: ./dev.sh test --exhaustive runs it")
+    for item in items:
+        if item.get_closest_marker("exhaustive") is not None:
+            item.add_marker(skip)
+
+
 # Hypothesis draws new examples on every run unless told not to; under CI (CI=true) it derandomises, so a
 # clean-clone run is reproducible.  A developer's run stays random and can still find new counter-examples.
 try:

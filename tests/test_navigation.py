@@ -488,7 +488,9 @@ def y_airway(r0=0.006, r1=0.0045, trunk=0.10, child=0.06, angle_deg=35.0, h=0.00
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("policy,target", [("oracle", 1), ("oracle", 2), ("depth", 1), ("depth", 2)])
+@pytest.mark.parametrize("policy,target", [pytest.param("oracle", 1, marks=pytest.mark.exhaustive),
+                                           pytest.param("oracle", 2, marks=pytest.mark.exhaustive),
+                                           ("depth", 1), pytest.param("depth", 2, marks=pytest.mark.exhaustive)])
 def test_episode_through_a_bifurcation_reaches_the_commanded_child_without_contact_over_half_a_newton(policy, target):
     """The bifurcation case: a 12 mm trachea forking at +-35 deg into 9 mm children (the scope is 5 mm); the
     operator's word picks the child; the config's defaults (shaft lumen) reach it with no contact over 0.5 N."""
@@ -501,7 +503,7 @@ def test_episode_through_a_bifurcation_reaches_the_commanded_child_without_conta
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("fork_child_mm", [40.0, 0.0])
+@pytest.mark.parametrize("fork_child_mm", [40.0, pytest.param(0.0, marks=pytest.mark.exhaustive)])
 def test_episode_into_the_commanded_child_against_the_fork_flare(fork_child_mm):
     """The fork's flare: the trunk's last 25 mm widen 4 mm toward the +x child, so its cross-sections' centres lean
     that way; commanded left, the GT-depth policy enters the -x child at <= 0.5 N, with the default (fork_child_mm
@@ -577,7 +579,7 @@ def test_episode_through_a_curving_branch_to_the_child_seen_far_aside():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("policy", ["depth", "oracle"])
+@pytest.mark.parametrize("policy", ["depth", pytest.param("oracle", marks=pytest.mark.exhaustive)])
 def test_episode_in_a_straight_tube_reaches_the_target_without_contact_over_half_a_newton(policy):
     """The issue's bound: no contact over 0.5 N. At the simulate default of this round (mass x10, 5 ms) the
     ground-truth-depth policy grazes the 6 mm tube's wall (min clearance -0.011 mm, i.e. 11 um of soft-contact

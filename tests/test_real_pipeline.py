@@ -14,6 +14,7 @@ import json
 import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,9 @@ pytestmark = [pytest.mark.slow, pytest.mark.shared]
 #: CASE073 (flattened trachea cut by the scan's top) and CASE091 (trachea cut by the scan's top) failed at
 #: medial_axis / trajectory until the root rules of issue #18 (anatomy/medial_axis.py); all seven now run.
 MASKS = ["medmpd_1", "medmpd_2", "medmpd_3", "airquant_demo", "atm_001", "case073", "case091"]
+#: run by ``./dev.sh test`` (CI): a Med-MPD tree and CASE091 (the trachea cut by the scan's top), two at a time;
+#: the other five are the exhaustive tier (``./dev.sh test --exhaustive``)
+CI_MASKS = ["medmpd_1", "case091"]
 FRAMES = 30
 OVERRIDES = ["patients=shared_masks", f"render.max_frames={FRAMES}", "render.width=192", "render.height=192",
              "depth.methods=[physics]",
@@ -69,13 +73,11 @@ def _mask_input(patient: str) -> Path:
     return (REPO / doc["patients"][patient]["input"]).resolve()
 
 
-@pytest.fixture(scope="session", params=MASKS)
-def run(request, tmp_path_factory) -> Run:
-    patient = request.param
-    src = _mask_input(patient)
-    if not src.is_file():
-        pytest.skip(f"shared sample data not available: {src} (SHARED_DATA {SHARED_DATA})")
-    out = tmp_path_factory.mktemp(f"real_{patient}")
+#: masks run at once (each is one ``room run`` process, peak RSS under 2.2 GB a stage on the largest tree)
+WORKERS = max(1, int(os.environ.get("ROOM_TEST_WORKERS", min(2, os.cpu_count() or 1))))
+
+
+def _room_run(patient: str, out: Path) -> Run:
     env = dict(os.environ)
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     env.pop("ROOM_CONF_DIR", None)
@@ -85,6 +87,36 @@ def run(request, tmp_path_factory) -> Run:
     log = r.stdout + r.stderr
     (out / "room_run.log").write_text(log)
     return Run(patient, out, r.returncode, log)
+
+
+@pytest.fixture(scope="session")
+def _runs(request, tmp_path_factory):
+    """Start every mask this session will test (selected, not skipped, input present), WORKERS at a time."""
+    wanted = []
+    for item in request.session.items:
+        cs = getattr(item, "callspec", None)
+        if cs is None or "run" not in cs.params or item.get_closest_marker("skip") is not None:
+            continue
+        if cs.params["run"] not in wanted and _mask_input(cs.params["run"]).is_file():
+            wanted.append(cs.params["run"])
+    pool = ThreadPoolExecutor(max_workers=WORKERS)
+    futures = {p: pool.submit(_room_run, p, tmp_path_factory.mktemp(f"real_{p}"))
+               for p in sorted(wanted, key=MASKS.index)}
+    yield futures
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
+@pytest.fixture(scope="session", params=[m if m in CI_MASKS else pytest.param(m, marks=pytest.mark.exhaustive)
+                                         for m in MASKS])
+def run(request, _runs) -> Run:
+    patient = request.param
+    src = _mask_input(patient)
+    if not src.is_file():
+        pytest.skip(f"shared sample data not available: {src} (SHARED_DATA {SHARED_DATA})")
+    if patient not in _runs:            # a test not in the session's list asked for it (e.g. --lf): run it now
+        _runs[patient] = ThreadPoolExecutor(1).submit(_room_run, patient, request.getfixturevalue(
+            "tmp_path_factory").mktemp(f"real_{patient}"))
+    return _runs[patient].result()
 
 
 def _sdf_at(run: Run, pts: np.ndarray) -> np.ndarray:
