@@ -1,7 +1,8 @@
 """Closed-loop navigation benchmark (issue #19): vision policies vs the centreline oracle.
 
     python benchmarks/navigation.py --output-dir OUTPUT_DIR [--targets-per-patient N] [--policies depth,oracle,darkest]
-                                    [--max-time-s S] [--trace] [--reuse A.json,B.json] [overrides ...]
+                                    [--max-time-s S] [--trace] [--reuse A.json,B.json] [--name NAME] [--report STEM]
+                                    [overrides ...]
 
 OUTPUT_DIR holds the patients' anatomy stages' outputs (``room run --patient ID --until medial_axis
 output_dir=OUTPUT_DIR``, or a full pipeline run).  For each patient of ``navigate.benchmark.patients``,
@@ -12,7 +13,9 @@ check a change on targets it was not tuned on); every policy runs one episode pe
 ``simulate``).  Reports success (target branch reached), time, tip path length, physics steps in contact, peak
 contact force, minimum distance from the scope's surface to the true lumen wall, generation reached, and CPU time
 per control step (render + plan + simulate 0.1 s), next to the wall time and the load average (the machine is
-shared: CPU time is the figure).  Writes benchmarks/results/navigation.{md,json} and reports/navigation.md;
+shared: CPU time is the figure).  Writes benchmarks/results/NAME.{md,json} (``--name``, default navigation) and
+reports/STEM.md (``--report``, default NAME; e.g. ``--merge ... --name navigation_s14 --report navigation``: the
+committed table reports/navigation.md from a dated result, leaving benchmarks/results/navigation.md as it was);
 ``--reuse``: episodes already run in those result files with the same output dir and the same episode / planner /
 simulate parameters are taken from them (an episode is deterministic; e.g. another seed's draw shares most targets);
 ``--trace``: also NAME_trace.md, every wrong-branch episode's fork, failure class and last steps
@@ -70,6 +73,7 @@ def main(argv=None) -> int:
     ap.add_argument("--policies")
     ap.add_argument("--max-time-s", type=float)
     ap.add_argument("--name", default="navigation")
+    ap.add_argument("--report", help="stem of the reports/ copy of the table (default: --name)")
     ap.add_argument("--patients", help="comma-separated subset of navigate.benchmark.patients")
     ap.add_argument("--merge", nargs="+", help="combine these result JSONs (runs over other patients) into --name")
     ap.add_argument("--reuse", help="comma-separated result JSONs of earlier runs: an episode (patient, target, policy) run there "
@@ -140,7 +144,7 @@ def main(argv=None) -> int:
         (res_dir / f"{args.name}_trace.md").write_text(trace_table(doc["command"], traces))
     (res_dir / f"{args.name}.md").write_text(md)
     (ROOT / "reports").mkdir(exist_ok=True)
-    (ROOT / "reports" / f"{args.name}.md").write_text(md)
+    (ROOT / "reports" / f"{args.report or args.name}.md").write_text(md)
     print(md)
     return 0
 

@@ -2,8 +2,9 @@
 
     python benchmarks/navigation_sweep.py --output-dir OUTPUT_DIR [--depth gt,shading_sfs,cnn] [--noise 0,1]
                                           [--patients patient_000] [--targets-per-patient N] [--max-time-s S]
-                                          [overrides ...]
+                                          [--name NAME] [--report] [overrides ...]
     python benchmarks/navigation_sweep.py --collect RUN.json [RUN.json ...]     # episodes run elsewhere
+    python benchmarks/navigation_sweep.py --collect A.json B.json --name NAME   # merge sweeps (e.g. one a cell)
     python benchmarks/navigation_sweep.py --smoke                                # a straight tube, 1 s episodes
 
 Each cell runs the ``depth`` policy (:func:`room_pipeline.navigation.closed_loop.run_episode`) with
@@ -13,7 +14,10 @@ noise beta added to that RGB (``gt`` has no image: only noise 0).  Targets: ``ta
 generation ``navigate.benchmark.target_generation`` drawn (``navigate.benchmark.seed``) among the eligible ones,
 the same draw as benchmarks/navigation.py.  Per cell: success, outcome counts, peak contact force, min wall
 clearance, generation reached, CPU per control step (``time.process_time``: render + estimator + plan + 0.1 s
-of physics) and the estimator's own CPU per call.  Writes benchmarks/results/navigation_sweep.{md,json}.
+of physics) and the estimator's own CPU per call.  Writes benchmarks/results/NAME.{md,json} (``--name``, default
+``navigation_sweep``) and, with ``--report``, the table to reports/NAME.md too.  ``--collect`` takes episode files
+of ``room navigate episode --out`` and this script's own result JSONs (their episodes), so cells run as separate
+processes merge into one table.
 
 The same sweep as single runs (a shell loop; ``room navigate episode`` is a tool, not a DVC stage, so
 ``dvc exp run -S`` does not reach it)::
@@ -151,11 +155,15 @@ def cells(rows: list[dict]) -> list[dict]:
 
 def table(doc: dict) -> str:
     lines = [f"# Closed-loop navigation: depth estimator x sensor noise ({doc['what']})", "",
-             f"`{doc['command']}`", "",
+             f"`{doc['command']}`", ""]
+    if doc.get("merged_from"):
+        lines += ["Merged from:", ""] + [f"- `{c}`" for c in doc["merged_from"]] + [""]
+    lines += [
              "Policy `depth` in every cell; `gt` = ray-cast ground truth (no image, so no noise); other estimators "
              "run on the loop's rendered 64x64 RGB (+ the calibrated sensor noise at beta = noise), relative ones "
              "median-scaled to the ground truth. CPU: `time.process_time()` per control step (render + estimator + "
-             "plan + 0.1 s of physics), on a shared machine (load " + f"{doc['load']:.1f}" + ").", "",
+             "plan + 0.1 s of physics), on a shared machine (load " + ("up to " if doc.get("merged_from") else "")
+             + f"{doc['load']:.1f}" + " at the end of the run" + ("s" if doc.get("merged_from") else "") + ").", "",
              "| depth | noise | episodes | success | outcomes | peak force max (N) | min clearance (mm) | "
              "mean generation | median path (mm) | CPU/step ms (mean / worst) | estimator ms/step |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -186,12 +194,22 @@ def main(argv=None) -> int:
     ap.add_argument("--collect", nargs="+", help="episode JSONs of `room navigate episode --out` to tabulate")
     ap.add_argument("--smoke", action="store_true", help="a straight tube, 1 s episodes, gt and shading_sfs")
     ap.add_argument("--results", default=str(RESULTS))
+    ap.add_argument("--name", default="navigation_sweep", help="result files' stem: RESULTS/NAME.{md,json}")
+    ap.add_argument("--report", action="store_true", help="also write the table to reports/NAME.md")
     args, overrides = ap.parse_known_args(argv)
     cmd = "python benchmarks/navigation_sweep.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    merged: list[dict] = []
     try:
         if args.collect:
-            rows = [{k: json.loads(Path(f).read_text()).get(k) for k in KEEP} for f in args.collect]
-            what = f"{len(rows)} collected episodes"
+            rows = []
+            for f in args.collect:
+                d = json.loads(Path(f).read_text())
+                if isinstance(d.get("episodes"), list):          # a sweep's own result file
+                    rows += [{k: r.get(k) for k in KEEP} for r in d["episodes"]]
+                    merged.append(d)
+                else:                                             # one `room navigate episode --out` file
+                    rows.append({k: d.get(k) for k in KEEP})
+            what = f"{len(rows)} collected episodes" + "".join(sorted({f"; {m['what']}" for m in merged if m.get("what")}))
         else:
             if args.smoke:
                 overrides = overrides + ["navigate.episode.max_time_s=1"]
@@ -223,12 +241,16 @@ def main(argv=None) -> int:
     except RoomError as exc:
         print(f"room: error: {exc}", file=sys.stderr)
         return 2
-    doc = {"command": cmd, "what": what, "load": os.getloadavg()[0],
-           "cells": cells(rows), "episodes": rows}
+    doc = {"command": cmd, "what": what,
+           "load": max([m["load"] for m in merged if "load" in m], default=os.getloadavg()[0]),
+           "merged_from": [m.get("command") for m in merged] or None, "cells": cells(rows), "episodes": rows}
     out = Path(args.results)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "navigation_sweep.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (out / "navigation_sweep.md").write_text(table(doc))
+    (out / f"{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (out / f"{args.name}.md").write_text(table(doc))
+    if args.report:
+        (ROOT / "reports").mkdir(exist_ok=True)
+        (ROOT / "reports" / f"{args.name}.md").write_text(table(doc))
     print(table(doc))
     return 0
 

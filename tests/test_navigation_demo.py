@@ -217,3 +217,28 @@ def test_sweep_collects_episode_files_into_one_table(tmp_path):
     assert set(cells) == {("gt", 0.0), ("cnn", 1.0)}
     assert cells[("cnn", 1.0)]["success"] == 1 and cells[("cnn", 1.0)]["outcomes"] == {"reached": 1, "wrong_branch": 1}
     assert "| cnn | 1 | 2 | 1/2 |" in (tmp_path / "res" / "navigation_sweep.md").read_text()
+
+
+def test_sweep_merges_its_own_result_files(tmp_path):
+    """--collect also takes the sweep's own result JSONs (one cell a process): their episodes in one table under
+    --name, their commands listed; --report copies the table to reports/ (not exercised: it writes the repo)."""
+    base = {"patient": "p", "target": 3, "success": True, "outcome": "reached", "time_s": 5.0, "path_length_mm": 20.0,
+            "peak_contact_force_n": 0.1, "min_wall_clearance_mm": 0.5, "generation_reached": 4, "control_steps": 50,
+            "cpu_per_step_s": {"total": 0.05}, "estimator_cpu_per_call_s": 0.01}
+    files = []
+    for d in ("gt", "cnn"):
+        f = tmp_path / f"sweep_{d}.json"
+        f.write_text(json.dumps({"command": f"python benchmarks/navigation_sweep.py --depth {d}", "what": "p; 1 target(s)",
+                                 "load": 3.0 if d == "gt" else 5.0,
+                                 "episodes": [base | {"perception": {"depth": d, "noise": 0.0}}]}))
+        files.append(f)
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "navigation_sweep.py"), "--collect", *map(str, files),
+                        "--results", str(tmp_path / "res"), "--name", "merged"], capture_output=True, text=True,
+                       encoding="utf-8")
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "res" / "merged.json").read_text())
+    assert [(c["depth"], c["success"]) for c in doc["cells"]] == [("cnn", 1), ("gt", 1)]
+    assert doc["merged_from"] == [f"python benchmarks/navigation_sweep.py --depth {d}" for d in ("gt", "cnn")]
+    assert doc["load"] == 5.0 and doc["what"] == "2 collected episodes; p; 1 target(s)"
+    md = (tmp_path / "res" / "merged.md").read_text()
+    assert "- `python benchmarks/navigation_sweep.py --depth cnn`" in md and "load up to 5.0" in md
