@@ -528,8 +528,21 @@ def test_stop_at_wall_ends_the_insertion_where_the_tip_no_longer_fits(joint_plan
 
 #: sha256 of the narrowing tube's plan (frames, joint_plan, target of trajectory.json) before stop_at_wall
 #: existed (commit e97a839), centreline plan / joint plan: the switch off changes no byte of the plan
-PLAN_BEFORE_STOP_AT_WALL = {None: "5dc7bccc3965fd816b34d60e0291feb27c2f6bd2de7fc3cacb49e3e680d6ac3c",
-                            "joint": "b30aecbe574ce90a598ff5d34546a574b45275114337ccfcabf6c3d729483bc7"}
+#: sha256 of the plan document with every float rounded to 7 decimals (_rounded).  The exact bytes were recorded
+#: (5dc7bccc..., b30aecbe...) and still come out with OpenBLAS's Haswell kernels, but its SkylakeX (AVX-512) kernels,
+#: picked at run time on such a CPU, move the plan by up to 5e-15 (8.8e-11 with the joint plan's values up to 1000):
+#: session 15's machine failed the exact hash at every commit back to session 9.  These hashes are the same under
+#: OPENBLAS_CORETYPE=Haswell, SkylakeX and Sandybridge.
+PLAN_BEFORE_STOP_AT_WALL = {None: "c050f740ffaf74b9c03a8048d5d51a2e832d92fdc7281a1d74a7f2f0a3b2dd98",
+                            "joint": "710cdca20dcf2d1e054e12710286456262b14a6dcbd451fa2fdf7d59c0760fa9"}
+
+
+def _rounded(x):
+    if isinstance(x, dict):
+        return {k: _rounded(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_rounded(v) for v in x]
+    return round(x, 7) + 0.0 if isinstance(x, float) else x
 #: the joint plan's code defaults when the hash was recorded: max_rate_q3_mm_s was 50 in code (10 in conf, which
 #: the code now follows since session 9); the plan of before is made with the value it was made with
 OLD_JOINT_PLAN_CODE_DEFAULTS = {"max_rate_q3_mm_s": 50.0}
@@ -547,7 +560,8 @@ def test_stop_at_wall_off_is_the_plan_of_before(joint_plan):
     assert _TrajectoryParams().stop_at_wall is True                      # the default (conf/trajectory)
     assert tr.insertion_stop is None and "insertion_stop" not in tr.to_dict()
     assert tr.clearance.min() < 2.5 * MM                                # it does ask the tip into the wall
-    assert hashlib.sha256(_plan_doc(tr).encode()).hexdigest() == PLAN_BEFORE_STOP_AT_WALL[joint_plan]
+    doc = json.dumps(_rounded(json.loads(_plan_doc(tr))))
+    assert hashlib.sha256(doc.encode()).hexdigest() == PLAN_BEFORE_STOP_AT_WALL[joint_plan]
 
 
 def test_stop_at_wall_config_errors_and_no_room_at_the_start():
