@@ -564,7 +564,8 @@ def test_room_run_failing_stage_gives_one_line(tree, tmp_path):
 
 # ------------------------------------------------------------------ real masks (slow: 512^3 volumes)
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["ATM_001_0000", "CASE073", "CASE091"])
+@pytest.mark.parametrize("name", [pytest.param("ATM_001_0000", marks=pytest.mark.exhaustive),
+                                  pytest.param("CASE073", marks=pytest.mark.exhaustive), "CASE091"])
 def test_public_trees_as_committed_axes_disagree_with_header(name):
     from room_pipeline.anatomy.plausibility import check_mask
 
@@ -624,8 +625,9 @@ def _interrupt(out: Path, sig: int, stage: str, delay_s: float) -> subprocess.Co
     return subprocess.CompletedProcess(proc.args, proc.returncode, "", "".join(err))
 
 
-#: the default tier interrupts each stage once and sends each signal at least once; --exhaustive: all twelve
-_INTERRUPT_CI = {("SIGINT", "segment"), ("SIGKILL", "sdf"), ("SIGTERM", "mesh"), ("SIGINT", "render")}
+#: the default tier: a kill in sdf (nothing cleans up) and a terminal's Ctrl-C in render (the stage cleans up);
+#: --exhaustive: all twelve signal x stage pairs
+_INTERRUPT_CI = {("SIGKILL", "sdf"), ("SIGINT", "render")}
 
 
 @pytest.mark.slow

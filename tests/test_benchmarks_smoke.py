@@ -136,8 +136,13 @@ def _scratch(tmp_path: Path) -> Path:
     return root
 
 
+#: smoke runs of minutes (1.5-2.3 min each at load 5, session 15): --exhaustive
+EXHAUSTIVE_SMOKE = {"anatomy_speed.py", "config_validation.py", "noise.py"}
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("script", sorted(SMOKE))
+@pytest.mark.parametrize("script", [s if s not in EXHAUSTIVE_SMOKE else pytest.param(s, marks=pytest.mark.exhaustive)
+                                    for s in sorted(SMOKE)])
 def test_benchmark_smoke(script, tmp_path):
     args, needs = SMOKE[script]
     for n in needs:

@@ -21,7 +21,8 @@ MASKS = [("airway_masks", "medmpd", "patient1", "bronchialTree.nii.gz"),
          ("airway_masks", "airquant_demo", "github_demo_seg.nii.gz")]
 
 
-@pytest.mark.parametrize("parts", MASKS, ids=lambda p: p[-2])
+@pytest.mark.parametrize("parts", [p if p[-2] == "airquant_demo" else pytest.param(p, marks=pytest.mark.exhaustive)
+                                   for p in MASKS], ids=lambda p: p[-2])    # Med-MPD 1: test_real_pipeline
 def test_real_mask_chain(parts):
     from room_pipeline.anatomy.mesh import MeshParams, extract_surface, mesh_topology
     from room_pipeline.anatomy.sdf import SdfParams, compute_sdf
