@@ -23,14 +23,15 @@ def pytest_configure(config):
 def pytest_addoption(parser):
     parser.addoption("--exhaustive", action="store_true", default=False,
                      help="also run the tests marked 'exhaustive' (every shared real mask through every stage, every "
-                          "signal x stage interruption, every navigation episode; about an hour more on 2 cores)")
+                          "signal x stage interruption, every carina cut and navigation episode; not timed as a whole)")
 
 
 def pytest_collection_modifyitems(config, items):
     """The exhaustive tier is skipped, with the reason, unless ``--exhaustive`` (or ROOM_TEST_EXHAUSTIVE=1).
 
-    ``./dev.sh test`` (what CI runs) keeps one representative of each exhaustive family: one real mask through
-    every stage, one interruption per stage, one navigation episode per scene; ``--exhaustive`` adds the rest."""
+    ``./dev.sh test`` (what CI runs) keeps the representatives each family's parametrisation names (two real masks
+    through every stage, two interruptions, two carina cuts, one navigation episode per scene, ...);
+    ``--exhaustive`` adds the rest."""
     if config.getoption("--exhaustive") or os.environ.get("ROOM_TEST_EXHAUSTIVE", "") in ("1", "true", "yes"):
         return
     skip = pytest.mark.skip(reason="exhaustive tier: ./dev.sh test --exhaustive runs it")

@@ -470,7 +470,7 @@ def test_si_loss_ignores_global_scale():
     from room_pipeline.depth.cnn import si_log_loss
 
     gen = torch.Generator().manual_seed(0)
-    for _ in range(20):                             # the one-pass form failed on about 1 draw in 20 (CI, stop 30)
+    for _ in range(20):                  # the one-pass form m2 - lam m1^2 failed CI (stop 30) on an unseeded draw
         y = torch.rand(2, 5, 5, generator=gen) * 0.05 + 0.01
         y[0, 0, 0] = 0                                          # invalid target pixel
         pred = torch.log(y.clamp(min=1e-6) * 3.0)

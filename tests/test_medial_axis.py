@@ -304,10 +304,14 @@ REAL = [("airway_masks", "medmpd", f"patient{p}", "bronchialTree.nii.gz") for p 
        [("airway_masks", "airquant_demo", "github_demo_seg.nii.gz")]
 
 
+def _real_id(p: tuple) -> str:
+    return p[-2] if p[-2] != "airquant_demo" else "airquant"
+
+
 @pytest.mark.shared
 @pytest.mark.slow
 @pytest.mark.parametrize("parts", [p if p[-2] in ("patient1", "airquant_demo") else pytest.param(
-    p, marks=pytest.mark.exhaustive) for p in REAL], ids=lambda p: p[-2] if p[-2] != "airquant_demo" else "airquant")
+    p, marks=pytest.mark.exhaustive) for p in REAL], ids=_real_id)
 def test_real_masks(parts):
     mask = read_volume(shared_path(*parts))
     crop = crop_to_interior(mask, 6)
@@ -522,10 +526,6 @@ def _crop_above(vol: Volume, z: float) -> Volume:
 #: cut 10 / 5 / 2 mm above its carina, whose top cross-section is the carinal flare (aspect 1.60-1.68, sheet
 #: fraction 0.88-0.99), ended its root 13.9 / 13.8 / 15.3 mm from the carina under the flattened-trachea rule
 KNOWN_CUT_LIMITS: dict = {}
-
-
-def _real_id(p: tuple) -> str:
-    return p[-2] if p[-2] != "airquant_demo" else "airquant"
 
 
 #: the default tier: Med-MPD 1 cut 2 mm above its carina (its carinal flare) and AirQuant 40 mm above;

@@ -113,9 +113,8 @@ def run(request, _runs) -> Run:
     src = _mask_input(patient)
     if not src.is_file():
         pytest.skip(f"shared sample data not available: {src} (SHARED_DATA {SHARED_DATA})")
-    if patient not in _runs:            # a test not in the session's list asked for it (e.g. --lf): run it now
-        _runs[patient] = ThreadPoolExecutor(1).submit(_room_run, patient, request.getfixturevalue(
-            "tmp_path_factory").mktemp(f"real_{patient}"))
+    if patient not in _runs:            # not in the session's list when it started: run it here, alone
+        return _room_run(patient, request.getfixturevalue("tmp_path_factory").mktemp(f"real_{patient}"))
     return _runs[patient].result()
 
 

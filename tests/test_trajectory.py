@@ -527,22 +527,25 @@ def test_stop_at_wall_ends_the_insertion_where_the_tip_no_longer_fits(joint_plan
 
 
 #: sha256 of the narrowing tube's plan (frames, joint_plan, target of trajectory.json) before stop_at_wall
-#: existed (commit e97a839), centreline plan / joint plan: the switch off changes no byte of the plan
-#: sha256 of the plan document with every float rounded to 7 decimals (_rounded).  The exact bytes were recorded
-#: (5dc7bccc..., b30aecbe...) and still come out with OpenBLAS's Haswell kernels, but its SkylakeX (AVX-512) kernels,
-#: picked at run time on such a CPU, move the plan by up to 5e-15 (8.8e-11 with the joint plan's values up to 1000):
-#: session 15's machine failed the exact hash at every commit back to session 9.  These hashes are the same under
-#: OPENBLAS_CORETYPE=Haswell, SkylakeX and Sandybridge.
+#: existed (commit e97a839), centreline plan / joint plan, every float rounded to 7 decimals (_rounded): the switch
+#: off changes no value of the plan.  Rounded because OpenBLAS picks its kernels at run time: the exact bytes
+#: recorded then (5dc7bccc..., b30aecbe...) come out under OPENBLAS_CORETYPE=Haswell but not with the AVX-512
+#: (SkylakeX) kernels of session 15's machine, which failed the exact hash at every commit back to session 9; these
+#: rounded hashes pass under OPENBLAS_CORETYPE=Haswell, SkylakeX and Sandybridge
+#: (`OPENBLAS_CORETYPE=X pytest tests/test_trajectory.py -k stop_at_wall_off`).
 PLAN_BEFORE_STOP_AT_WALL = {None: "c050f740ffaf74b9c03a8048d5d51a2e832d92fdc7281a1d74a7f2f0a3b2dd98",
                             "joint": "710cdca20dcf2d1e054e12710286456262b14a6dcbd451fa2fdf7d59c0760fa9"}
 
 
 def _rounded(x):
+    """A JSON document with every float rounded to 7 decimals (-0.0 made 0.0)."""
     if isinstance(x, dict):
         return {k: _rounded(v) for k, v in x.items()}
     if isinstance(x, list):
         return [_rounded(v) for v in x]
     return round(x, 7) + 0.0 if isinstance(x, float) else x
+
+
 #: the joint plan's code defaults when the hash was recorded: max_rate_q3_mm_s was 50 in code (10 in conf, which
 #: the code now follows since session 9); the plan of before is made with the value it was made with
 OLD_JOINT_PLAN_CODE_DEFAULTS = {"max_rate_q3_mm_s": 50.0}
