@@ -399,3 +399,30 @@ def test_render_with_a_transport_mesh_is_finite_and_deterministic():
     off = RaycastRenderer(scene_of(mesh, pose), dataclasses.replace(
         cfg, indirect=dataclasses.replace(cfg.indirect, max_edge_mm=0.0))).render(0, ("rgb",))
     assert a["rgb_linear"][a["hit"]].mean() > 0 and off["rgb_linear"].tobytes() != a["rgb_linear"].tobytes()
+
+
+@pytest.mark.parametrize("caustics", [False, True])
+def test_uniform_albedo_power_series_matches_the_general_bounce_loop(caustics):
+    """An untextured scene (the exposure meter's) takes the single-column power series of ``_bounce``; it gives
+    the values of the general three-column Jacobi loop (forced by marking the albedo non-uniform), for the
+    tip light's frame and for a uniform source, with and without caustics."""
+    import open3d as o3d
+
+    mesh = box()
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    cfg = IndirectConfig(bounces=5, rays_per_point=16, caustics=caustics)
+    mat = TissueMaterial(base_color=(0.8, 0.45, 0.3), specular=0.5)
+    fast = Radiosity(rc, mesh.vertices, mesh.faces, np.zeros(3), mat, None, cfg, 1)
+    assert fast.uniform_albedo
+    slow = Radiosity(rc, mesh.vertices, mesh.faces, np.zeros(3), mat, None, cfg, 1)
+    slow.uniform_albedo = False
+    pose = look_at(np.zeros(3), np.array([0.3, 0.2, 1.0]))
+    light = TipLight(power_w=0.01, offset_m=(0.0, 0.0, 0.0))
+    for a, b in zip(fast.frame(pose, light), slow.frame(pose, light)):
+        np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-7 * float(np.abs(b).max()))
+    e0 = np.linspace(0.0, 3.0, mesh.n_vertices).astype(np.float32)
+    np.testing.assert_allclose(fast.indirect_irradiance(e0), slow.indirect_irradiance(e0), rtol=2e-5)
+    textured = Radiosity(rc, mesh.vertices, mesh.faces, np.zeros(3), mat,
+                         np.linspace(0.2, 0.8, 3 * mesh.n_vertices).reshape(-1, 3), cfg, 1)
+    assert not textured.uniform_albedo

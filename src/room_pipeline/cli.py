@@ -32,11 +32,12 @@ Bad input ends with one line on stderr ("room: error: ...") and exit status 2.
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 from pathlib import Path
 
-from .errors import RoomError
+from .errors import ConfigError, RoomError
 
 
 def _config(args: argparse.Namespace):
@@ -73,16 +74,42 @@ def stage_output_paths(cfg, name: str, key: str) -> list[Path]:
     return [p for p in outs if p != metrics] + [metrics, timing_path(metrics)]
 
 
+def stage_blas_limit():
+    """The BLAS thread pools of a stage process, limited to ``ROOM_BLAS_THREADS`` threads (default 1; 0 = the
+    libraries' own default).  A stage's numpy work is skinny products ((N, 3) by (3, 3), matrix-vector) and
+    long dot products, which OpenBLAS splits over threads whose spin-waits cost more CPU than they save:
+    ``validate_anatomy`` on the phantom took 93 s wall, 68 s user + 51 s system CPU with OpenBLAS's two
+    threads and 76 s, 58 + 18 s with one (session 16, this machine; ``/usr/bin/time room stage
+    validate_anatomy --patient patient_000`` with and without ``ROOM_BLAS_THREADS=0``).  One thread also
+    makes a long dot product's rounding independent of the core count.  Workers of the executor set their
+    own limits (:func:`room_pipeline.execution.executor_base.limit_threads`)."""
+    import contextlib
+
+    raw = os.environ.get("ROOM_BLAS_THREADS", "1").strip() or "1"
+    if not raw.isdigit():
+        raise ConfigError(f"ROOM_BLAS_THREADS must be a whole number of threads (0 = the libraries' default), "
+                          f"got {raw!r}")
+    n = int(raw)
+    if n <= 0:
+        return contextlib.nullcontext()
+    # a BLAS loaded later (a stage's lazy imports) reads the variable; one loaded already is limited below
+    os.environ["OPENBLAS_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(n)
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=n, user_api="blas")
+
+
 def cmd_stage(args: argparse.Namespace) -> int:
     from . import stages
     from .catalog import MANIFEST_NAME
     from .io.outputs import stage_outputs
 
+    blas = stage_blas_limit()                      # before the stage's imports load numpy's BLAS
     module = stages.load(args.name)
     cfg = _config(args)
     _validate(cfg, args.name, args.patient)
     manifest = Path(cfg.output_dir) / MANIFEST_NAME
-    with stage_outputs(stage_output_paths(cfg, args.name, args.patient), manifest=manifest):
+    with stage_outputs(stage_output_paths(cfg, args.name, args.patient), manifest=manifest), blas:
         metrics = module.run(cfg, args.patient)
     if not args.quiet:
         summary = ", ".join(f"{k}={v}" for k, v in metrics.items() if not isinstance(v, dict))

@@ -23,29 +23,68 @@ def _stats(err: np.ndarray, voxel: float, prefix: str) -> dict:
             f"{prefix}mean_vox": mean / voxel, f"{prefix}p95_vox": p95 / voxel, f"{prefix}max_vox": mx / voxel}
 
 
-def sdf_error(sdf_est: Volume, tree: AirwayTree, band: float) -> dict:
+class TreeTruth:
+    """The exact quantities of one :class:`AirwayTree` that comparisons need, each computed once per argument:
+    its signed distance at a grid's voxel centres within a band of the wall, and its surface samples.
+    ``validate_anatomy`` measures two SDFs on one grid and two meshes at one spacing against the same tree."""
+
+    def __init__(self, tree: AirwayTree) -> None:
+        self.tree = tree
+        self._grid: dict = {}
+        self._samples: dict = {}
+
+    def grid_band(self, vol: Volume, band: float) -> tuple[tuple[slice, ...], np.ndarray, np.ndarray]:
+        """``(block, sel, true)``: the index block of ``vol`` that can lie within ``band`` (metres) of the
+        wall, the flat indices (C order, in the block) of its voxels with an exact true SDF ``|true| <= band``,
+        and that true SDF there (metres)."""
+        key = (tuple(vol.shape), np.asarray(vol.affine, dtype=np.float64).tobytes(), float(band))
+        if key not in self._grid:
+            self._grid[key] = self._grid_band(vol, band)
+        return self._grid[key]
+
+    def _grid_band(self, vol: Volume, band: float):
+        tree = self.tree
+        lo, hi = tree.bounds(margin=band + 2 * float(vol.spacing.max()))
+        # only voxels in the (grown) bounding box of the tree can lie within band of the wall
+        w = vol.world_to_index(np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                         for z in (lo[2], hi[2])]))
+        shape = np.array(vol.shape)
+        a = np.clip(np.floor(w.min(axis=0)).astype(int), 0, shape)
+        b = np.clip(np.ceil(w.max(axis=0)).astype(int) + 1, 0, shape)
+        aff = np.asarray(vol.affine, dtype=np.float64)
+        ii, jj, kk = (np.arange(a[d], b[d], dtype=np.float64) for d in range(3))
+        # voxel centres of the block, world metres (the affine applied by broadcasting: no (N, 3) index array)
+        pts = (aff[:3, 3] + ii[:, None, None, None] * aff[:3, 0] + jj[None, :, None, None] * aff[:3, 1]
+               + kk[None, None, :, None] * aff[:3, 2]).reshape(-1, 3)
+        true, exact = tree.sdf(pts, band=band * 1.5 + 1e-9)
+        sel = np.flatnonzero(exact & (np.abs(true) <= band))
+        return tuple(slice(int(a[d]), int(b[d])) for d in range(3)), sel, true[sel]
+
+    def surface_samples(self, spacing: float) -> np.ndarray:
+        """:meth:`AirwayTree.surface_samples` points at ``spacing`` (metres)."""
+        key = float(spacing)
+        if key not in self._samples:
+            self._samples[key] = self.tree.surface_samples(spacing)[0]
+        return self._samples[key]
+
+
+def sdf_error(sdf_est: Volume, tree: AirwayTree, band: float, truth: TreeTruth | None = None) -> dict:
     """Error of ``sdf_est`` (metres) against the tree's exact SDF at voxel centres.
 
     Voxels with ``|true sdf| <= band`` (metres) and an exact true value are used.
     Returns n, MAE / p95 / max absolute error in metres (``mae_m`` ...) and in
     voxels (``mae_vox`` ..., voxel = geometric mean of the spacing), the mean
     signed error (``bias_m``, positive = estimate too far outside) and the
-    fraction of voxels whose sign disagrees (``sign_mismatch``).
+    fraction of voxels whose sign disagrees (``sign_mismatch``).  ``truth``: the
+    tree's exact values shared with other comparisons (None: computed here).
     """
+    truth = TreeTruth(tree) if truth is None else truth
+    if truth.tree is not tree:
+        raise ValueError("sdf_error: truth was computed for another tree")
     voxel = float(np.exp(np.mean(np.log(sdf_est.spacing))))
-    lo, hi = tree.bounds(margin=band + 2 * float(sdf_est.spacing.max()))
-    # only voxels in the (grown) bounding box of the tree can lie within band of the wall
-    w = sdf_est.world_to_index(np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                                         for z in (lo[2], hi[2])]))
-    shape = np.array(sdf_est.shape)
-    a = np.clip(np.floor(w.min(axis=0)).astype(int), 0, shape)
-    b = np.clip(np.ceil(w.max(axis=0)).astype(int) + 1, 0, shape)
-    idx = np.mgrid[a[0]:b[0], a[1]:b[1], a[2]:b[2]].reshape(3, -1).T
-    pts = sdf_est.index_to_world(idx)
-    true, exact = tree.sdf(pts, band=band * 1.5 + 1e-9)
-    sel = exact & (np.abs(true) <= band)
-    est = np.asarray(sdf_est.data, dtype=np.float64)[tuple(idx[sel].T)]
-    err = est - true[sel]
+    block, sel, true = truth.grid_band(sdf_est, band)
+    est = np.asarray(np.asarray(sdf_est.data)[block], dtype=np.float64).reshape(-1)[sel]
+    err = est - true
     out = {"band_m": float(band), "voxel_m": voxel}
     s = _stats(err, voxel, "")
     out.update({"n": s.get("n", 0)})
@@ -53,11 +92,11 @@ def sdf_error(sdf_est: Volume, tree: AirwayTree, band: float) -> dict:
         out.update(mae_m=s["mean_m"], p95_m=s["p95_m"], max_m=s["max_m"],
                    mae_vox=s["mean_vox"], p95_vox=s["p95_vox"], max_vox=s["max_vox"],
                    bias_m=float(err.mean()),
-                   sign_mismatch=float(np.mean((est < 0) != (true[sel] < 0))))
+                   sign_mismatch=float(np.mean((est < 0) != (true < 0))))
     return out
 
 
-def mesh_surface_distance(mesh: Mesh, tree: AirwayTree, spacing: float) -> dict:
+def mesh_surface_distance(mesh: Mesh, tree: AirwayTree, spacing: float, truth: TreeTruth | None = None) -> dict:
     """Distances between a lumen mesh and the tree's exact surface (metres and voxels).
 
     ``spacing`` is the voxel size (metres) used to express distances in voxels;
@@ -67,15 +106,19 @@ def mesh_surface_distance(mesh: Mesh, tree: AirwayTree, spacing: float) -> dict:
     ``RaycastingScene.compute_distance``).  Keys: ``m2t_*`` and ``t2m_*``
     (mean / p95 / max in ``_m`` and ``_vox``), ``hausdorff_m``/``hausdorff_vox``
     (symmetric), ``mean_m``/``mean_vox``/``p95_m``/``p95_vox`` of mesh -> true.
+    ``truth``: the tree's surface samples shared with other comparisons (None: computed here).
     """
     from ..geometry.open3d_adapter import MeshScene
 
     pts = np.concatenate([sample_surface(mesh, spacing / 4.0), mesh.vertices])
     d, exact = tree.sdf(pts, band=8 * spacing)
     m2t = np.abs(d[exact])
-    truth, _ = tree.surface_samples(spacing / 2.0)
+    truth = TreeTruth(tree) if truth is None else truth
+    if truth.tree is not tree:
+        raise ValueError("mesh_surface_distance: truth was computed for another tree")
+    samples = truth.surface_samples(spacing / 2.0)
     # distances in a local frame (float32 precision)
-    t2m = MeshScene.of(mesh, origin=mesh.vertices.mean(axis=0)).distance(truth)
+    t2m = MeshScene.of(mesh, origin=mesh.vertices.mean(axis=0)).distance(samples)
     out = {"voxel_m": float(spacing)}
     out.update(_stats(m2t, spacing, "m2t_"))
     out.update(_stats(t2m, spacing, "t2m_"))

@@ -188,8 +188,14 @@ def exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | N
 
 
 def frame_worker(scene: Scene, p: RenderParams, seq: str, src: np.ndarray, ts: np.ndarray, poses: np.ndarray,
-                  nthreads: int, cycles_ev: float | None, cycles_threads: int) -> dict:
-    """Per-worker state, built once: the renderers (BVH, Blender scene) and what names and records a frame."""
+                  nthreads: int, cycles_ev: float | None, cycles_threads: int, gather: dict | None = None) -> dict:
+    """Per-worker state, built once: the renderers (BVH, Blender scene) and what names and records a frame.
+    ``gather``: the driver's inter-reflection gather matrices (:func:`~room_pipeline.render.indirect.gather_cache`;
+    the same mesh and knobs give the same bytes, so a worker takes them instead of casting the rays again)."""
+    if gather:
+        from .indirect import adopt_gather_cache
+
+        adopt_gather_cache(gather)
     r = Renderers(scene, p, nthreads=nthreads, cycles_ev=cycles_ev, cycles_threads=cycles_threads)
     if r.cycles is not None:     # spawned workers end without running weakref finalizers: remove Cycles' temp dir
         import multiprocessing.util
@@ -358,7 +364,12 @@ def render_sequence(p: RenderParams, mesh: Mesh, graph: CentrelineGraph, ts: np.
     # each worker's Open3D casts and Cycles get the executor's per-worker thread budget (0: all cores)
     nthreads = ex_params.threads if parallel else 0
     cycles_threads = ex_params.threads if parallel else 0
-    init = (frame_worker, (scene, p, str(seq), src, ts, poses, nthreads, cycles_ev, cycles_threads))
+    gather = None
+    if parallel and p.indirect_bounces > 0:             # built once, by the meter and the probe above
+        from .indirect import gather_cache
+
+        gather = gather_cache()
+    init = (frame_worker, (scene, p, str(seq), src, ts, poses, nthreads, cycles_ev, cycles_threads, gather))
     storage = StorageParams.from_dict(p.storage)
     with make_executor(ex_params, init=init) as ex:
         # blocks small enough that every worker gets several (the executor hands out contiguous chunks of them)

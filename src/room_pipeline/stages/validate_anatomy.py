@@ -18,7 +18,7 @@ from ..anatomy.sdf import SdfParams, compute_sdf
 from ..anatomy.tree import AirwayTree
 from ..config.compose import section
 from ..evaluate.segmentation import segmentation_metrics
-from ..evaluate.surface import mesh_surface_distance, sdf_error
+from ..evaluate.surface import TreeTruth, mesh_surface_distance, sdf_error
 from ..io.mesh import read_obj
 from ..io.volume import read_nifti_sdf, read_volume
 from .common import StageTimer, patient_paths, read_json, round_floats, write_metrics
@@ -45,17 +45,18 @@ def run(cfg: DictConfig, patient: str) -> dict:
         seg.pop("branch_coverage", None)  # per-capsule detail: too long for a metrics file
 
         sdf_params = SdfParams.from_dict(section(cfg, "sdf"))
-        sdf_iso = sdf_error(compute_sdf(gt_mask, sdf_params), tree, SDF_BAND_M)
-        sdf_e2e = sdf_error(read_nifti_sdf(paths.sdf), tree, SDF_BAND_M)
+        truth = TreeTruth(tree)             # the tree's exact values, computed once for both comparisons
+        sdf_iso = sdf_error(compute_sdf(gt_mask, sdf_params), tree, SDF_BAND_M, truth)
+        sdf_e2e = sdf_error(read_nifti_sdf(paths.sdf), tree, SDF_BAND_M, truth)
 
         mesh_params = MeshParams.from_dict(section(cfg, "mesh"))
         gt_sdf = read_nifti_sdf(paths.gt_sdf)
         mesh_iso_res = extract_surface(gt_sdf, mesh_params)
-        mesh_iso = mesh_surface_distance(mesh_iso_res.mesh, tree, voxel)
+        mesh_iso = mesh_surface_distance(mesh_iso_res.mesh, tree, voxel, truth)
         mesh_iso["n_faces"] = mesh_iso_res.mesh.n_faces
         mesh_iso["watertight"] = bool(mesh_iso_res.report.get("watertight"))
         product_mesh = read_obj(paths.mesh)
-        mesh_e2e = mesh_surface_distance(product_mesh, tree, voxel)
+        mesh_e2e = mesh_surface_distance(product_mesh, tree, voxel, truth)
         mesh_e2e["watertight"] = bool(mesh_topology(product_mesh)["watertight"])
     checks = {name: bool(ok) for name, ok in (
         ("segment_dice_ge_0.90", seg["dice"] >= 0.90),
