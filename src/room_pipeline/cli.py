@@ -79,8 +79,8 @@ def stage_blas_limit():
     libraries' own default).  A stage's numpy work is skinny products ((N, 3) by (3, 3), matrix-vector) and
     long dot products, which OpenBLAS splits over threads whose spin-waits cost more CPU than they save:
     ``validate_anatomy`` on the phantom took 93 s wall, 68 s user + 51 s system CPU with OpenBLAS's two
-    threads and 76 s, 58 + 18 s with one (session 16, this machine; ``/usr/bin/time room stage
-    validate_anatomy --patient patient_000`` with and without ``ROOM_BLAS_THREADS=0``).  One thread also
+    threads and 76-91 s, 58-62 + 18-28 s with one (session 16, this machine, repeated runs; README, Pitfalls).
+    One thread also
     makes a long dot product's rounding independent of the core count.  Workers of the executor set their
     own limits (:func:`room_pipeline.execution.executor_base.limit_threads`)."""
     import contextlib
@@ -92,11 +92,17 @@ def stage_blas_limit():
     n = int(raw)
     if n <= 0:
         return contextlib.nullcontext()
-    # a BLAS loaded later (a stage's lazy imports) reads the variable; one loaded already is limited below
-    os.environ["OPENBLAS_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(n)
-    from threadpoolctl import threadpool_limits
+    if "numpy" not in sys.modules:     # a fresh `room` process: its BLAS, loaded by the stage's imports, reads these
+        os.environ["OPENBLAS_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(n)
 
-    return threadpool_limits(limits=n, user_api="blas")
+    @contextlib.contextmanager
+    def limited():                     # applied and undone around the stage's run only (an in-process caller keeps
+        from threadpoolctl import threadpool_limits   # its own settings, also when the stage fails)
+
+        with threadpool_limits(limits=n, user_api="blas"):
+            yield
+
+    return limited()
 
 
 def cmd_stage(args: argparse.Namespace) -> int:
