@@ -426,3 +426,16 @@ def test_uniform_albedo_power_series_matches_the_general_bounce_loop(caustics):
     textured = Radiosity(rc, mesh.vertices, mesh.faces, np.zeros(3), mat,
                          np.linspace(0.2, 0.8, 3 * mesh.n_vertices).reshape(-1, 3), cfg, 1)
     assert not textured.uniform_albedo
+
+
+def test_columns_product_is_the_multi_vector_product_bit_for_bit():
+    """The bounces multiply one column at a time; SciPy's single-vector CSR product sums each row in the same
+    order as its multi-vector one, so the result is the same bytes (what keeps the default run's frames)."""
+    import scipy.sparse as sp
+
+    from room_pipeline.render.indirect import _columns_product
+
+    rng = np.random.default_rng(3)
+    g = sp.random(500, 500, density=0.05, random_state=4, format="csr", dtype=np.float32)
+    x = rng.random((500, 3)).astype(np.float32)
+    assert _columns_product(g, x).tobytes() == np.asarray(g @ x, dtype=np.float32).tobytes()

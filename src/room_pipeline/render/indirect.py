@@ -170,7 +170,8 @@ _G_CACHE_SIZE = 2
 
 def _columns_product(g, x: np.ndarray) -> np.ndarray:
     """``g @ x`` (float32, (V, 3)) one column at a time: SciPy's single-vector CSR product sums each row in
-    the same order as its multi-vector one (the same bytes) and is ~30 % faster for three columns here."""
+    the same order as its multi-vector one (the same bytes, tests/test_indirect.py) and was faster on this
+    project's gather matrices (the render stage's time: README, Quick start)."""
     xf = np.asfortranarray(x, dtype=np.float32)
     out = np.empty((g.shape[0], xf.shape[1]), dtype=np.float32)
     for c in range(xf.shape[1]):
@@ -188,9 +189,14 @@ def adopt_gather_cache(entries: dict | None) -> None:
     driver builds one for its exposure meter; its workers reuse it instead of casting the same rays again)."""
     for key, g in (entries or {}).items():
         if key not in _G_CACHE:
-            if len(_G_CACHE) >= _G_CACHE_SIZE:
-                _G_CACHE.pop(next(iter(_G_CACHE)))
-            _G_CACHE[key] = g
+            _remember_gather(key, g)
+
+
+def _remember_gather(key: tuple, g) -> None:
+    """Keep ``g`` under ``key``, dropping the oldest entry beyond ``_G_CACHE_SIZE``."""
+    if len(_G_CACHE) >= _G_CACHE_SIZE:
+        _G_CACHE.pop(next(iter(_G_CACHE)))
+    _G_CACHE[key] = g
 
 
 def _gather_key(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, config: IndirectConfig) -> tuple:
@@ -279,9 +285,7 @@ class Radiosity:
             self.build_cpu_s = time.process_time() - t0
             return
         self.G = self._gather(rc, o3d, nthreads)
-        if len(_G_CACHE) >= _G_CACHE_SIZE:
-            _G_CACHE.pop(next(iter(_G_CACHE)))
-        _G_CACHE[key] = self.G
+        _remember_gather(key, self.G)
         self.build_cpu_s = time.process_time() - t0
 
     def _gather(self, rc, o3d, nthreads: int):
