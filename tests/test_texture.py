@@ -34,6 +34,43 @@ def textured(mesh, poses, tex=TEX, **kw):
 # --------------------------------------------------------------------------- the pattern
 
 
+def _gradient_noise_textbook(p, key):
+    """Perlin's gradient noise written corner by corner with (N, 3) gradient rows (the module's form before
+    session 17): the reference the table-driven :func:`gradient_noise` must match bit for bit."""
+    from room_pipeline.render import texture as T
+
+    p = np.asarray(p, dtype=np.float64)
+    perm = T._perm_table(int(key))
+    i0 = np.floor(p)
+    f = (p - i0).astype(np.float32)
+    ii = i0.astype(np.int64) & 255
+    w = f * f * f * (f * (f * np.float32(6.0) - np.float32(15.0)) + np.float32(10.0))
+    out = np.zeros(len(p), dtype=np.float32)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            pxy = perm[perm[ii[:, 0] + dx] + ii[:, 1] + dy]
+            wxy = (w[:, 0] if dx else 1 - w[:, 0]) * (w[:, 1] if dy else 1 - w[:, 1])
+            for dz in (0, 1):
+                g = T._GRAD32[T._GRAD_OF[perm[pxy + ii[:, 2] + dz]]]
+                dot = g[:, 0] * (f[:, 0] - dx) + g[:, 1] * (f[:, 1] - dy) + g[:, 2] * (f[:, 2] - dz)
+                out += (wxy * (w[:, 2] if dz else 1 - w[:, 2])) * dot
+    return out.astype(np.float64)
+
+
+@pytest.mark.parametrize("scale", [0.5, 40.0, 3000.0])
+def test_gradient_noise_matches_the_textbook_form_bit_for_bit(scale):
+    """The lookup tables of :func:`gradient_noise` (three contiguous gradient components per hash value) change
+    how the corners are gathered, not one value: the frames of every earlier run stay byte-identical."""
+    from room_pipeline.render.texture import _layer_key, gradient_noise
+
+    p = np.random.default_rng(7).uniform(-scale, scale, (20000, 3))
+    p[:5] = [[0, 0, 0], [255.999, -0.0, 1e-9], [-1, -1, -1], [256, 512, -256], [0.5, 0.5, 0.5]]
+    for layer in (1, 3, 5):
+        key = _layer_key(11, layer)
+        assert gradient_noise(p, key).tobytes() == _gradient_noise_textbook(p, key).tobytes()
+    assert gradient_noise(np.zeros((0, 3)), _layer_key(0, 1)).shape == (0,)
+
+
 def test_deterministic_and_seeded():
     p = np.random.default_rng(0).uniform(-0.05, 0.05, (5000, 3))
     a = mucosa_albedo(p, TEX, base_color=BASE)
