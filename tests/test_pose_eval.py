@@ -72,14 +72,16 @@ def test_identity_is_perfect():
 
 
 def test_one_frame_rotated_10_deg_gives_known_rra_and_auc():
-    # four cameras looking down +z, moving along +z; frame 2 rolled 10 deg about its optical axis:
-    # the 3 pairs with frame 2 have rotation error 10 deg and translation error 0 (t is along the roll axis)
+    # four cameras looking down +z, moving along +z; frame 2 rolled 10.5 deg about its optical axis:
+    # the 3 pairs with frame 2 have rotation error 10.5 deg and translation error 0 (t is along the roll axis).
+    # Not 10 deg: an error of exactly 10 sits on the AUC's 10-degree threshold ("strictly below"), and whether the
+    # recovered angle rounds to 10 - 2e-15 or 10 + 2e-15 depends on the CPU's arccos (AMD EPYC: below, AUC 0.85)
     gt = np.stack([pose(c=(0, 0, k * 1e-3)) for k in range(4)])
     est = gt.copy()
-    est[2, :3, :3] = gt[2, :3, :3] @ rot([0, 0, 1], 10.0)
+    est[2, :3, :3] = gt[2, :3, :3] @ rot([0, 0, 1], 10.5)
     i, j, r, t = mt.relative_errors(gt, est)
     with_2 = (i == 2) | (j == 2)
-    np.testing.assert_allclose(r[with_2], 10.0, atol=1e-9)
+    np.testing.assert_allclose(r[with_2], 10.5, atol=1e-9)
     np.testing.assert_allclose(r[~with_2], 0.0, atol=1e-9)
     np.testing.assert_allclose(t, 0.0, atol=1e-6)
     m = mt.pose_metrics(gt, est)
