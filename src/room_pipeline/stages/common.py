@@ -51,7 +51,9 @@ class StageTimer:
 
     @staticmethod
     def peak_rss_mb() -> float:
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        """The largest resident set of the stage process and of its reaped worker processes, MiB."""
+        return max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF,
+                                                                 resource.RUSAGE_CHILDREN)) / 1024.0
 
 
 def write_metrics(paths: PatientPaths, stage: str, metrics: dict, timings: dict | None = None,
