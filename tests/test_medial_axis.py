@@ -622,6 +622,46 @@ def test_a_real_side_branch_of_the_trachea_stays_a_branch(length_mm, radius_mm):
     assert sorted(len(g.children(c.id)) for c in kids) == [0, 2]
 
 
+def test_a_narrow_twig_that_ends_in_the_tracheas_lumen_is_not_the_first_bifurcation():
+    """Issue #18 (CASE091 as stored and at 0.5 mm, CASE073 and Med-MPD 2 at 0.5 mm: the root ended at a twig
+    48-101 mm above the carina, as narrow as a tracheal bronchus, 0.09-0.42 of the junction's radius, or whose ways
+    left the lumen by 0.68 voxel, so the width / exit rule kept it): a 3.5 mm channel fused along the 8 mm trachea
+    (its axis 10.5 mm beside the trachea's, z 45 .. 5 mm) grows medial lines of width 0.45 whose ways stay in the
+    lumen; the root ended at the first, 63 mm above the carina.  Each ends where the lumen's cross-section normal to
+    it runs on into the trachea's (``_twig_end_width`` 1.54 / 1.76 junction radii, > ``TWIG_END_OPEN``; a tracheal
+    bronchus's end is its own disc, 0.38-0.58: ``test_a_real_side_branch_of_the_trachea_stays_a_branch``): both
+    are dropped and the root runs on to the carina."""
+    side = [((0, 10.5, 45), (0, 10.5, 5), 3.5)]
+    vol = _capsules_mask(_Y_TREE + side, (-55, -16, -70), (55, 22, 66))
+    res = extract_medial_axis(compute_sdf(crop_to_interior(vol, 6), SdfParams()))
+    g = res.graph
+    check_tree(g)
+    assert res.report["root_open_end_twigs_dropped"] >= 1, res.report
+    assert np.linalg.norm(g.root.points[-1] - np.array([0, 0, -10]) * MM) < 3 * MM, g.root.points[-1] / MM
+    assert len(g.children(g.root.id)) == 2 and len(g.branches) == 7
+
+
+def test_the_twig_end_width_reads_a_tube_and_an_open_lumen():
+    """``_twig_end_width`` on analytic SDFs: a twig along the axis of a 3 mm tube reads its radius over the
+    junction's (3 / 8), one along the axis of a 12 mm wide slab (a lumen wider than the trachea) reads the most
+    the 1.5-junction-radius window holds (> 1)."""
+    from room_pipeline.anatomy.sdf_field import SdfField
+    from room_pipeline.anatomy.trachea_root import TWIG_END_OPEN, _twig_end_width
+
+    h = 0.5
+    ax = np.arange(-20, 20.01, h)
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    aff = np.diag([h * MM] * 3 + [1.0])
+    aff[:3, 3] = ax[0] * MM
+    twig = np.stack([np.zeros(30), np.zeros(30), np.linspace(-14, 14, 30)], axis=1) * MM
+    junction = np.array([0.0, 0.0, -17.0]) * MM
+    tube = SdfField(((np.hypot(X, Y) - 3.0) * MM).astype(np.float32), aff)
+    slab = SdfField(((np.abs(Y) - 6.0) * MM).astype(np.float32), aff)
+    w_tube = _twig_end_width(twig, np.full(30, 3.0 * MM), junction, 8.0 * MM, tube, h * MM)
+    w_slab = _twig_end_width(twig, np.full(30, 6.0 * MM), junction, 8.0 * MM, slab, h * MM)
+    assert abs(w_tube - 3.0 / 8.0) < 0.1 and w_slab > 1.5 * TWIG_END_OPEN, (w_tube, w_slab)
+
+
 def _narrowed_top_mask(h: float = 0.8, a_top: float = 10.0, b_top: float = 4.0) -> Volume:
     """A trachea cut by the scan's top (z = 20 mm) whose upper part is flattened and narrower than its lower part
     (CASE091 resampled: round, radius 7.9 mm, low down; aspect 1.5-1.7 and inscribed radius 3.9-5.3 mm in its

@@ -67,9 +67,9 @@ from ..errors import ConfigError, InputError
 from ..io.volume import Volume
 from .centreline import CentrelineGraph, GraphBranch
 from .sdf_field import SdfField as _Field
-from .trachea_root import (ENTRY_ARM_DESCENT_DEG, FLARE_DEPTH_RADII, FLAT_ASPECT, _arm_headings,
-                           _twig_inside_lumen, _arms_split, _cross_section_aspect, _cut_entry, _divides_below,
-                           _root_arms, _sheet_like, _sheet_trunk, _top_centre, _trachea_sheet)
+from .trachea_root import (ENTRY_ARM_DESCENT_DEG, FLARE_DEPTH_RADII, FLAT_ASPECT, TWIG_END_OPEN, _arm_headings,
+                           _arms_split, _cross_section_aspect, _cut_entry, _divides_below, _root_arms,
+                           _twig_end_width, _twig_inside_lumen, _sheet_like, _sheet_trunk, _top_centre, _trachea_sheet)
 
 log = logging.getLogger(__name__)
 
@@ -724,7 +724,12 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
     # down the dividing sibling; repeated until the root's children all divide or one that ends leaves the
     # lumen.  A child that divides is dropped the same way when its whole subtree passes (a medial sheet's
     # network of lines: a flattened upper trachea above a round, wider one, under a root re-selected at its top)
-    # beside a dividing sibling that does not.
+    # beside a dividing sibling that does not.  Last, a twig that ends in the trachea's lumen is dropped whatever its
+    # width or ways (``root_open_end_twigs_dropped``; trachea_root.TWIG_END_OPEN): beside the one child that divides
+    # on, a child that ends where the lumen's cross-section normal to it is wider than the trachea (the region
+    # around its last resolved points reaches beyond the junction's radius) never left the trachea through its
+    # wall -- a crease of a wide or oblique trachea (CASE091 as stored and at 0.5 mm, CASE073 and Med-MPD 2 at
+    # 0.5 mm: 1.6-2.1 junction radii), not a tracheal bronchus (its end is its own disc: 0.38-0.58).
     def subtree(c: int) -> list[int]:
         out_, st = [], [c]
         while st:
@@ -739,7 +744,12 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         return _twig_inside_lumen(pts[nodes_], rad[nodes_], float(rad[branches[c]["nodes"][0]]), pts[others_],
                                   field, voxel)
 
-    n_twigs = n_sheet = 0
+    def end_open(c: int) -> bool:
+        nodes_ = branches[c]["nodes"]
+        return bool(_twig_end_width(pts[nodes_[1:]], rad[nodes_[1:]], pts[nodes_[0]], float(rad[nodes_[0]]), field,
+                                    voxel) > TWIG_END_OPEN)
+
+    n_twigs = n_sheet = n_open = 0
     while any(branches[c]["children"] for c in branches[0]["children"]):
         kids = branches[0]["children"]
         twig = next((c for c in kids if not branches[c]["children"] and sheet_part(c)), None)
@@ -748,6 +758,9 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
             parts = [c for c in dividing if sheet_part(c)] if len(dividing) >= 2 else []
             twig = parts[0] if 0 < len(parts) < len(dividing) else None
             n_sheet += twig is not None
+        if twig is None and sum(bool(branches[c]["children"]) for c in kids) == 1:
+            twig = next((c for c in kids if not branches[c]["children"] and end_open(c)), None)
+            n_open += twig is not None
         if twig is None:
             break
         for bid in subtree(twig):
@@ -756,6 +769,7 @@ def _build_graph(mp: np.ndarray, mr: np.ndarray, field: _Field, voxel: float, pa
         merge_into_parent_if_single(0)
         n_twigs += 1
     rep["root_sheet_subtrees_dropped"] = n_sheet
+    rep["root_open_end_twigs_dropped"] = n_open
     rep["root_twigs_dropped"] = n_twigs
     rep["n_branches_after_pruning"] = len(branches)
 

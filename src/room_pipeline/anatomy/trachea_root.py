@@ -437,3 +437,48 @@ def _twig_inside_lumen(twig: np.ndarray, twig_rad: np.ndarray, r_junction: float
     if not _twig_measure(twig, twig_rad, r_junction, others, field, voxel, width_only=True)[0] >= 0.5:
         return False
     return bool(_twig_measure(twig, twig_rad, r_junction, others, field, voxel)[1] < TWIG_EXIT_VOXELS)
+
+
+#: a twig of the root that ends without dividing, beside the one child that divides on (the trachea's
+#: continuation), is a line of the trachea's own medial set when the lumen's cross-section at its end is wider than
+#: the trachea: the connected lumen region around its last resolved points, in the plane normal to the twig,
+#: reaches farther than the junction's radius from them (``_twig_end_width`` > 1).  A side branch of the trachea
+#: (a tracheal bronchus) is a tube narrower than the trachea once it has left the trachea's wall, so the
+#: cross-section at its end is its own disc.  Measured (session 17; the region is looked for within 1.5 junction
+#: radii, so 2.12 is the most it reads): synthetic tracheal bronchi 15 x 3, 25 x 3, 25 x 4.5 mm 0.41 / 0.38 /
+#: 0.58 (their own radius, 0.33-0.57 of the junction's); the twigs at which the roots ended 48-101 mm above the
+#: carina: CASE091 as stored 2.12 (width 0.40 of the junction, its ways never leave the lumen), CASE091 at 0.5 mm
+#: 2.12 then 1.63, CASE073 at 0.5 mm 1.93 (its ways leave the lumen by 0.68 voxel) then 2.13 / 1.93 / 1.84 /
+#: 2.12, Med-MPD 2 at 0.5 mm 2.11 (width 0.09); a synthetic crease (a 3.5 mm channel fused along an 8 mm
+#: trachea, width 0.45) 1.54 / 1.76.  Width and the ways' exit did not separate those twigs from the 15 x 3 mm
+#: bronchus (0.33, -1.40 voxel).  The bound is the trachea's own radius: no branch of it is wider.
+TWIG_END_OPEN = 1.0
+TWIG_END_POINTS = 3
+
+
+def _twig_end_width(twig: np.ndarray, twig_rad: np.ndarray, junction: np.ndarray, r_junction: float,
+                    field: _Field, voxel: float) -> float:
+    """How wide the lumen is around the end of a twig of the root (its skeleton points ``twig``, metres, (N, 3),
+    in order from the junction ``junction`` out, radii ``twig_rad``): for each of its last ``TWIG_END_POINTS``
+    points that lie at least a voxel inside the wall (radius >= ``voxel``: resolved by the mask) and outside the
+    junction's ball (farther than ``r_junction`` from it), the lumen's cross-section normal to the twig there
+    (``_section``, half-voxel grid over +-1.5 ``r_junction``) is labelled and the greatest distance from the point
+    of the region it lies in is taken, over ``r_junction``; the median.  About the twig's own radius over the
+    junction's for a tube of its own (a side branch), > 1 for a line of the trachea's own medial set (its
+    cross-section is the trachea's lumen).  nan when no point qualifies."""
+    far = np.flatnonzero((twig_rad >= voxel) & (np.linalg.norm(twig - junction, axis=1) > r_junction))
+    out = []
+    h = 0.5 * voxel
+    for i in far[-TWIG_END_POINTS:]:
+        a = twig[min(i + 2, len(twig) - 1)] - twig[max(i - 2, 0)]
+        n = float(np.linalg.norm(a))
+        if n == 0.0:
+            continue
+        S, T, inside = _section(field, twig[i], a / n, 0.5 * r_junction, h)
+        lab, _ = ndimage.label(inside)
+        d2 = S * S + T * T
+        k = lab.flat[int(np.argmin(d2))]          # the region at the point (at least a voxel inside the wall)
+        if k == 0:
+            continue
+        out.append(float(np.sqrt(d2[lab == k].max())) / r_junction)
+    return float(np.median(out)) if out else float("nan")
