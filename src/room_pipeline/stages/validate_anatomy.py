@@ -14,7 +14,7 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from ..config.compose import section
-from ..evaluate.anatomy_validation import SDF_BAND_M, ValidationInputs, validate_anatomy  # noqa: F401
+from ..evaluate.anatomy_validation import ValidationInputs, validate_anatomy
 from .common import StageTimer, patient_paths, round_floats, write_metrics
 
 
