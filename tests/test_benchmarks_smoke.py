@@ -58,6 +58,7 @@ NEEDS = {"run": (_has_run, f"no complete rendered default run in {RUN} (room run
 #: script -> (smoke arguments, what it needs)
 SMOKE = {
     "config_validation.py": (["--repeats", "1"], ()),
+    "texture_speed.py": (["--repeats", "1"], ()),
     "trajectory.py": (["--max-generation", "2"], ()),
     "navigation_sweep.py": (["--smoke"], ()),
     "phantom_vs_schmidt.py": (["--seeds", "1"], ()),
