@@ -51,7 +51,8 @@ class StageTimer:
 
     @staticmethod
     def peak_rss_mb() -> float:
-        """The largest resident set of the stage process and of its reaped worker processes, MiB."""
+        """The largest resident set of one process, the stage's or one of its reaped workers', MiB (workers running
+        side by side may together hold more: the render stage reports its own sum, render/sequence.peak_rss_mb)."""
         return max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF,
                                                                  resource.RUSAGE_CHILDREN)) / 1024.0
 
