@@ -8,9 +8,10 @@ import pytest
 
 # The test process runs BLAS single-threaded, as every `room stage` process does (cli.stage_blas_limit; the same
 # ROOM_BLAS_THREADS, default 1, 0 = the libraries' default).  The suite's numpy work is skinny products and long dot
-# products that OpenBLAS splits over threads whose spin-waits cost more CPU than they save (session 16: the 632
-# common tests took 0.79x the CPU when the process happened to run one BLAS thread;
-# benchmarks/results/suite_speed_s16.md, suite_speed_s17.md).  Set before anything loads numpy's or SciPy's
+# products that OpenBLAS splits over threads whose spin-waits can cost more CPU than they save (session 16's machine:
+# the 632 common tests took 0.79x the CPU when the process happened to run one BLAS thread,
+# benchmarks/results/suite_speed_s16.md; session 17's: no change, suite_speed_s17.md).  It also makes a long dot
+# product's rounding the same as in the stages.  Set before anything loads numpy's or SciPy's
 # OpenBLAS (each reads the variable when it loads), so children inherit it too, as a stage's would.
 _BLAS_THREADS = (os.environ.get("ROOM_BLAS_THREADS", "1").strip() or "1")
 if _BLAS_THREADS.isdigit() and int(_BLAS_THREADS) > 0:

@@ -35,26 +35,16 @@ def textured(mesh, poses, tex=TEX, **kw):
 
 
 def _gradient_noise_textbook(p, key):
-    """Perlin's gradient noise written corner by corner with (N, 3) gradient rows (the module's form before
-    session 17): the reference the table-driven :func:`gradient_noise` must match bit for bit."""
-    from room_pipeline.render import texture as T
+    """Perlin's gradient noise with (N, 3) gradient rows per corner (the module's form before session 17), kept once
+    in benchmarks/texture_speed.py (which times it): the reference the table-driven form must match bit for bit."""
+    import importlib.util
+    from pathlib import Path
 
-    p = np.asarray(p, dtype=np.float64)
-    perm = T._perm_table(int(key))
-    i0 = np.floor(p)
-    f = (p - i0).astype(np.float32)
-    ii = i0.astype(np.int64) & 255
-    w = f * f * f * (f * (f * np.float32(6.0) - np.float32(15.0)) + np.float32(10.0))
-    out = np.zeros(len(p), dtype=np.float32)
-    for dx in (0, 1):
-        for dy in (0, 1):
-            pxy = perm[perm[ii[:, 0] + dx] + ii[:, 1] + dy]
-            wxy = (w[:, 0] if dx else 1 - w[:, 0]) * (w[:, 1] if dy else 1 - w[:, 1])
-            for dz in (0, 1):
-                g = T._GRAD32[T._GRAD_OF[perm[pxy + ii[:, 2] + dz]]]
-                dot = g[:, 0] * (f[:, 0] - dx) + g[:, 1] * (f[:, 1] - dy) + g[:, 2] * (f[:, 2] - dz)
-                out += (wxy * (w[:, 2] if dz else 1 - w[:, 2])) * dot
-    return out.astype(np.float64)
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "texture_speed.py"
+    spec = importlib.util.spec_from_file_location("texture_speed", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.gradient_noise_rows(p, key)
 
 
 @pytest.mark.parametrize("scale", [0.5, 40.0, 3000.0])

@@ -69,8 +69,8 @@ def write_params(path: str | os.PathLike = "params.yaml", overrides: Sequence[st
 @functools.lru_cache(maxsize=1)
 def _yaml_loader():
     """OmegaConf's YAML loader (its float rule, e.g. ``1e-3``; duplicate keys an error; no timestamps) on PyYAML's
-    C parser when libyaml is there: ``OmegaConf.load`` parses in pure Python, 0.16 CPU s for the composed
-    ``params.yaml`` that every `room stage` call reads, half of it the parsing (session 17, this machine)."""
+    C parser when libyaml is there: ``OmegaConf.load`` parses in pure Python, and every `room stage` call reads the
+    composed ``params.yaml``."""
     import yaml
     from omegaconf._utils import get_yaml_loader
 

@@ -93,8 +93,9 @@ def mesh_accuracy(inputs: ValidationInputs) -> dict:
 
 
 #: automatic workers: the second worker only for a true mask of at least this many voxels.  A spawned worker costs
-#: a few CPU s to start and import the anatomy stack; the default phantom (379 x 221 x 370 voxels at 0.7 mm,
-#: 31 M) takes 80 CPU s serially, so its halves are worth it, while the test suite's small phantoms are not.
+#: a few CPU s to start and import the anatomy stack; the default phantom (379 x 221 x 370 voxels at 0.7 mm, 31 M)
+#: runs for about a minute (its ``metrics/anatomy_validation.timing.json``), so its halves are worth it, while the
+#: test suite's small phantoms are not.
 MIN_VOXELS_FOR_TWO_WORKERS = 8_000_000
 
 
