@@ -339,6 +339,36 @@ def test_stage_writes_noisy_rgb_keeps_clean_and_is_reproducible(tmp_path):
                               read_png(seq / "rgb" / f"frame_{i:04d}.png"))
 
 
+def test_stage_same_bytes_with_one_and_two_workers(tmp_path):
+    """The frames are shared among the execution workers (noise/sequence.py): the noisy PNGs and noise.json are
+    the same bytes with the serial backend and with two spawned workers."""
+    profile_path, _ = camera_profile().save(tmp_path / "cam.npz")
+    seq = tmp_path / "out" / "p0" / "sequence_000"
+    for i in range(5):
+        write_png8(seq / "rgb" / f"frame_{i:04d}.png", clean_scene(48, 64, i))
+    got = {}
+    for name, execution in (("serial", {"backend": "serial"}),
+                            ("local2", {"backend": "local", "workers": 2, "chunk_size": 1})):
+        cfg = _stage_cfg(tmp_path, profile_path)
+        cfg.execution = execution
+        m = stage.run(cfg, "p0/sequence_000")
+        got[name] = ([(seq / "rgb_noisy" / f"frame_{i:04d}.png").read_bytes() for i in range(5)],
+                     (seq / "metadata" / "noise.json").read_bytes(),
+                     {k: v for k, v in m.items() if not k.endswith("_s") and "ms" not in k and "rss" not in k})
+    assert got["serial"] == got["local2"]
+
+
+def test_stage_bad_frame_from_a_worker_is_one_input_error(tmp_path):
+    profile_path, _ = camera_profile().save(tmp_path / "cam.npz")
+    seq = tmp_path / "out" / "p0" / "sequence_000"
+    write_png8(seq / "rgb" / "frame_0000.png", clean_scene(40, 40, 0))
+    write_png8(seq / "rgb" / "frame_0001.png", np.zeros((40, 40), np.uint8))      # grey, not RGB
+    cfg = _stage_cfg(tmp_path, profile_path)
+    cfg.execution = {"backend": "local", "workers": 2, "chunk_size": 1}
+    with pytest.raises(InputError, match="frame_0001.png: expected an 8-bit RGB render"):
+        stage.run(cfg, "p0/sequence_000")
+
+
 def test_stage_errors(tmp_path):
     profile_path, _ = camera_profile().save(tmp_path / "cam.npz")
     with pytest.raises(InputError, match="no rendered frames"):

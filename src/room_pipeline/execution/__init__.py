@@ -6,11 +6,11 @@
 from __future__ import annotations
 
 from .executor import (BACKENDS, ExecutionParams, Executor, chunks, ensure_writable, limit_threads, make_executor,
-                       worker_threads)
+                       params_for_items, worker_threads)
 from .manifest import (build_manifest, compare_manifests, compare_versions, read_manifest, remove_stale_temp_files,
                        stale_temp_files, verify_manifest, write_manifest)
 
 __all__ = ["BACKENDS", "ExecutionParams", "Executor", "chunks", "ensure_writable", "limit_threads", "make_executor",
-           "worker_threads",
+           "params_for_items", "worker_threads",
            "build_manifest", "compare_manifests", "compare_versions", "read_manifest", "remove_stale_temp_files",
            "stale_temp_files", "verify_manifest", "write_manifest"]

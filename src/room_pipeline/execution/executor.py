@@ -75,6 +75,19 @@ def make_executor(params: ExecutionParams | Mapping[str, Any] | None = None, ini
     return cls(params, init)
 
 
+def params_for_items(execution: ExecutionParams | Mapping[str, Any] | None, items: int | None = None) -> ExecutionParams:
+    """The ``execution`` section for ``items`` independent items: ``workers: 0`` resolved
+    (:meth:`ExecutionParams.resolved`), and ``local`` with one worker run in this process (``serial``): a spawned
+    process would only add its start-up time, the outputs are the same bytes either way."""
+    import dataclasses
+
+    p = execution if isinstance(execution, ExecutionParams) else ExecutionParams.from_dict(execution)
+    p = p.resolved(items)
+    if p.backend == "local" and p.workers == 1:
+        return dataclasses.replace(p, backend="serial")
+    return p
+
+
 def ensure_writable(*folders: str | os.PathLike, need_bytes: int = 0) -> None:
     """Check before any work starts that each folder can take new files (and ``need_bytes`` more in all).
 

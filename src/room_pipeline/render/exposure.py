@@ -2,9 +2,11 @@
 
 A real scope meters every frame and adjusts its gain smoothly: walls close
 to the tip do not blow out, a far dark bronchus is lifted.  Here the meter
-is a cheap sequential pre-pass over the whole sequence, run once in the
-driver before frames are fanned out to workers, so the exposures (and hence
-the bytes of every frame) do not depend on the executor or the worker count.
+is a cheap low-resolution pass over the whole sequence before any frame is
+rendered.  Steps 1-2 depend on one frame each, so the render stage meters
+frames on its executor's workers (:class:`ExposureMeter`); steps 3-5 are one
+sequential pass in the driver.  The exposures (and hence the bytes of every
+frame) do not depend on the executor or the worker count.
 
 For each frame ``i`` (in pose order):
 
@@ -28,8 +30,10 @@ For each frame ``i`` (in pose order):
 5. the result is clamped to ``[min_ev, max_ev]`` (the gain range) and
    rounded to 1/1000 EV.
 
-All arithmetic is sequential numpy on one process: same scene, same
-parameters -> same exposures, bit for bit.
+Each frame's steps 1-2 are the same arithmetic in whichever process meters
+it, and 3-5 sequential numpy in one: same scene, same parameters -> same
+exposures, bit for bit (tests/test_realism.py checks two workers against one
+process).
 """
 from __future__ import annotations
 
@@ -76,37 +80,58 @@ def meter_camera(cam: CameraIntrinsics, scale: float) -> CameraIntrinsics:
                                cx=(cam.cx + 0.5) * sx - 0.5, cy=(cam.cy + 0.5) * sy - 0.5)
 
 
-def raw_exposures(scene: Scene, p: ExposureParams, nthreads: int = 0, indirect=None) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame unsmoothed exposures ``e_i`` and highlight limits (float64, EV) from a low-resolution meter pass.
-
-    ``indirect``: the ray caster's inter-reflection (:class:`~room_pipeline.render.indirect.IndirectConfig`),
-    which the meter then sees too (on the mean albedo); None: direct light only.
-    """
-    from .raycast import RaycastConfig, RaycastRenderer
-
+def meter_scene(scene: Scene, p: ExposureParams) -> Scene:
+    """What the meter casts: the scene at ``meter_scale`` of the image size, the mucosa's mean albedo (no
+    texture), the film at 0 EV without per-frame exposures."""
     mat = dataclasses.replace(scene.material, texture=None)
     film = dataclasses.replace(scene.film, exposure_ev=0.0, frame_ev=None)
-    meter = Scene(scene.mesh, meter_camera(scene.camera, p.meter_scale), scene.poses, scene.timestamps,
-                  material=mat, light=scene.light, film=film)
-    cfg = RaycastConfig(nthreads=nthreads, per_pixel_texture=False)
-    if indirect is not None:
-        cfg = dataclasses.replace(cfg, indirect=indirect)
-    r = RaycastRenderer(meter, cfg)
-    out = np.zeros(len(scene.poses))
-    limit = np.full(len(scene.poses), np.inf)
-    for i in range(len(scene.poses)):
-        res = r.render(i, ("rgb",))
+    return Scene(scene.mesh, meter_camera(scene.camera, p.meter_scale), scene.poses, scene.timestamps,
+                 material=mat, light=scene.light, film=film)
+
+
+class ExposureMeter:
+    """Steps 1-2 of the module docstring, one frame at a time: :meth:`frame` gives frame ``i``'s raw exposure
+    ``e_i`` (0 EV when nothing is lit) and highlight limit (``inf`` when none), EV.
+
+    ``indirect``: the ray caster's inter-reflection (:class:`~room_pipeline.render.indirect.IndirectConfig`),
+    which the meter then sees too (on the mean albedo); None: direct light only.  ``nthreads``: Open3D casting
+    threads (0: all cores); it changes no value."""
+
+    def __init__(self, scene: Scene, p: ExposureParams, nthreads: int = 0, indirect=None) -> None:
+        from .raycast import RaycastConfig, RaycastRenderer
+
+        self.p = p
+        cfg = RaycastConfig(nthreads=nthreads, per_pixel_texture=False)
+        if indirect is not None:
+            cfg = dataclasses.replace(cfg, indirect=indirect)
+        self.renderer = RaycastRenderer(meter_scene(scene, p), cfg)
+
+    def frame(self, i: int) -> tuple[float, float]:
+        p = self.p
+        res = self.renderer.render(i, ("rgb",))
         lin = res["rgb_linear"][res["hit"]]
         y = luminance(lin)
         ok = np.isfinite(y) & (y > 0)
+        e, limit = 0.0, math.inf
         if not ok.any():
-            continue
+            return e, limit
         ref = float(np.percentile(y[ok], p.percentile))
         hi = float(np.percentile(lin[ok].max(axis=1), p.highlight_percentile))
         if ref > 0 and math.isfinite(ref):
-            out[i] = math.log2(p.target / ref)
+            e = math.log2(p.target / ref)
         if hi > 0 and math.isfinite(hi):
-            limit[i] = math.log2(p.highlight_max / hi)
+            limit = math.log2(p.highlight_max / hi)
+        return e, limit
+
+
+def raw_exposures(scene: Scene, p: ExposureParams, nthreads: int = 0, indirect=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame unsmoothed exposures ``e_i`` and highlight limits (float64, EV), every frame metered in this
+    process (:class:`ExposureMeter`)."""
+    meter = ExposureMeter(scene, p, nthreads, indirect)
+    out = np.zeros(len(scene.poses))
+    limit = np.full(len(scene.poses), np.inf)
+    for i in range(len(scene.poses)):
+        out[i], limit[i] = meter.frame(i)
     return out, limit
 
 

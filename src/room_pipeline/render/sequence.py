@@ -27,12 +27,13 @@ processes or Ray actors), each building its renderers once
 worker's :class:`~room_pipeline.io.storage.FrameWriter`, whose threads encode
 and write them atomically while the next frame is cast; a block returns its
 records once all its files are on disk).  Everything computed once per sequence is computed here, before the
-fan-out: face labels, the vertices' airway coordinates, the automatic
-exposure (by default the ray caster's per-frame exposures from a sequential
-meter pre-pass, :mod:`room_pipeline.render.exposure`; with backend
-``cycles``, Cycles' own EV on the film's reference frame) and the renderer
-metadata; the workers get the exposures fixed.  So the backend and the
-number of workers change no byte of the outputs.
+fan-out: face labels, the vertices' airway coordinates, the automatic-fixed
+exposure (the ray caster's on the film's reference frame, which also builds the inter-reflection's gather
+matrix the workers adopt; with backend ``cycles``, Cycles' own EV) and the renderer metadata.  The per-frame
+exposures (``render.auto_exposure: per_frame``, the default) are metered first on the same workers, a frame
+each (:func:`meter_block`, :mod:`room_pipeline.render.exposure`), and smoothed in time here in frame order; every
+render block then carries the whole track.  So the backend and the number of workers change no byte of the
+outputs.
 """
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ from ..catalog import RENDER_FOLDERS, SequencePaths
 from ..config.compose import section
 from ..conventions import metadata_block
 from ..errors import InputError
-from ..execution import ExecutionParams, make_executor
+from ..execution import ExecutionParams, make_executor, params_for_items
 from ..io.images import write_png8, write_png16
 from ..io.jsondoc import read_json
 from ..io.mesh import Mesh
@@ -84,18 +85,13 @@ def load_poses(meta_dir, which: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def execution_params(cfg: DictConfig, frames: int | None = None) -> ExecutionParams:
-    """The ``execution`` section (defaults when absent; ``workers: 0`` resolved for ``frames`` frames:
-    :meth:`ExecutionParams.resolved`); ``local`` with one worker runs in this process.
+    """The ``execution`` section for ``frames`` frames (:func:`room_pipeline.execution.params_for_items`:
+    defaults when absent, ``workers: 0`` resolved, ``local`` with one worker in this process).
 
-    One spawned process would only add its start-up time: the frames are the
-    same bytes either way.  Several processes are what uses several cores:
-    Open3D's ``cast_rays`` holds the GIL, so threads of one process cannot
-    cast and encode at once (``benchmarks/results/write_throughput.md``).
+    Several processes are what uses several cores: Open3D's ``cast_rays`` holds the GIL, so threads of one
+    process cannot cast and encode at once (``benchmarks/results/write_throughput.md``).
     """
-    p = ExecutionParams.from_dict(section(cfg, "execution") if "execution" in cfg else None).resolved(frames)
-    if p.backend == "local" and p.workers == 1:
-        return dataclasses.replace(p, backend="serial")
-    return p
+    return params_for_items(section(cfg, "execution") if "execution" in cfg else None, frames)
 
 
 class Renderers:
@@ -145,17 +141,15 @@ class Renderers:
             self.cycles.close()
 
 
-def exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | None]:
-    """What is computed once per sequence, in the driver: (renderer metadata, ray-caster EV, Cycles EV, per-frame EVs).
+def exposure_probe(scene: Scene, p: RenderParams):
+    """What is computed once per sequence in the driver before the fan-out: ``(probe, ray-caster EV, Cycles EV,
+    Cycles settings)``.  ``probe``: the ray caster with its default config on ``scene``, whose automatic EV (one
+    cast of the film's reference frame) also builds the inter-reflection's gather matrix the workers adopt.
 
-    With ``render.auto_exposure: per_frame`` (and no fixed ``exposure_ev``) the
-    ray caster's per-frame exposures come from a sequential meter pre-pass
-    here, before the fan-out (:mod:`room_pipeline.render.exposure`), so they
-    do not depend on the executor; Cycles keeps one EV per sequence.
-
-    Both automatic exposures are chosen on the film's reference frame by the
-    renderer that uses them (Cycles renders that frame once here, with the film
-    as configured); the metadata is the ray caster's with its default config.
+    Both automatic exposures are chosen on the film's reference frame by the renderer that uses them (Cycles
+    renders that frame once here, with the film as configured); with ``render.auto_exposure: per_frame`` the ray
+    caster's per-frame exposures come on top (:func:`meter_block` on the workers, then
+    :func:`~room_pipeline.render.exposure.smooth_exposures` here); Cycles keeps one EV per sequence.
     """
     from .raycast import RaycastRenderer
 
@@ -166,15 +160,22 @@ def exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | N
         settings = cycles_settings(p)
         with CyclesRenderer(scene, settings) as cy:
             cycles_ev = cy.exposure_ev
-    frame_ev = None
-    if p.exposure_ev is None and p.auto_exposure == "per_frame":
-        from .exposure import exposure_track
-
-        frame_ev = exposure_track(scene, exposure_params(p), indirect=indirect_config(p))
-        scene = dataclasses.replace(scene, film=dataclasses.replace(scene.film, frame_ev=frame_ev))
     probe = RaycastRenderer(scene, raycast_config(p))
-    meta = probe.metadata()                      # computes the automatic EV (one cast of the reference frame)
-    ev = probe.exposure_ev
+    return probe, probe.exposure_ev, cycles_ev, settings
+
+
+def per_frame_exposure(p: RenderParams) -> bool:
+    """The scope's gain control: ``render.auto_exposure: per_frame`` and no fixed ``exposure_ev``."""
+    return p.exposure_ev is None and p.auto_exposure == "per_frame"
+
+
+def renderer_metadata(probe, film, p: RenderParams, frame_ev: tuple | None, settings,
+                      cycles_ev: float | None) -> dict:
+    """``render.json``'s ``renderer``: the probe's metadata with ``film`` (as configured) and the per-frame
+    exposures, the meter's parameters and method; under ``geometry``, beside Cycles' RGB settings, for backend
+    ``cycles``."""
+    meta = probe.metadata()
+    meta["film"] = dataclasses.asdict(dataclasses.replace(film, frame_ev=frame_ev))
     if frame_ev is not None:
         meta["auto_exposure"] = {"mode": "per_frame", "params": dataclasses.asdict(exposure_params(p)),
                                  "frame_ev": list(frame_ev),
@@ -184,7 +185,7 @@ def exposure_once(scene: Scene, p: RenderParams) -> tuple[dict, float, float | N
         meta = {"rgb": {"backend": "blender_cycles", "exposure_ev": cycles_ev,
                         "settings": dataclasses.asdict(settings)},
                 "geometry": meta}
-    return meta, ev, cycles_ev, frame_ev
+    return meta
 
 
 def frame_worker(scene: Scene, p: RenderParams, seq: str, src: np.ndarray, ts: np.ndarray, poses: np.ndarray,
@@ -208,15 +209,32 @@ def frame_worker(scene: Scene, p: RenderParams, seq: str, src: np.ndarray, ts: n
     sp = SequencePaths(Path(seq))
     return {"r": r, "seq": sp.root, "folders": {m: sp.folder(m) for m in RENDER_FOLDERS}, "mods": mods,
             "src": src, "ts": ts, "poses": poses, "storage": st,
-            "writer": FrameWriter(st.write_threads, st.max_pending)}
+            "writer": FrameWriter(st.write_threads, st.max_pending),
+            "scene": scene, "params": p, "nthreads": nthreads, "meter": None}
 
 
-def render_block(state: dict, block: tuple[int, int]) -> list[dict]:
-    """Render frames ``block[0] .. block[1] - 1`` in order; return their records once all their files are written."""
+def meter_block(state: dict, block: tuple[int, int]) -> list[tuple[float, float]]:
+    """The exposure meter's raw exposure and highlight limit (EV) of frames ``block[0] .. block[1] - 1``
+    (:class:`~room_pipeline.render.exposure.ExposureMeter`, built on the worker's first block)."""
+    if state["meter"] is None:
+        from .exposure import ExposureMeter
+
+        p = state["params"]
+        state["meter"] = ExposureMeter(state["scene"], exposure_params(p), state["nthreads"], indirect_config(p))
+    return [state["meter"].frame(i) for i in range(*block)]
+
+
+def render_block(state: dict, block: tuple) -> list[dict]:
+    """Render frames ``block[0] .. block[1] - 1`` in order; return their records once all their files are written.
+    ``block[2]``, when given: the sequence's per-frame exposures (EV), set on the worker's film first."""
+    if len(block) > 2 and block[2] is not None:
+        scene = state["r"].raycast.scene
+        if scene.film.frame_ev != block[2]:
+            scene.film = dataclasses.replace(scene.film, frame_ev=tuple(block[2]))
     writer: FrameWriter = state["writer"]
     out = []
     try:
-        for i in range(*block):
+        for i in range(block[0], block[1]):
             out.append(render_frame(state, i))
     finally:
         writer.wait()
@@ -358,23 +376,34 @@ def render_sequence(p: RenderParams, mesh: Mesh, graph: CentrelineGraph, ts: np.
     airway = airway_coordinates(mesh.vertices, graph) if material.texture.enabled else None
     scene = Scene(mesh, cam, poses[src], ts[src], material=material, light=light, film=film,
                   face_labels=labels, vertex_airway=airway)
-    renderer_meta, ev, cycles_ev, frame_ev = exposure_once(scene, p)
-    # every worker: the same exposures (fixed EV, or the per-frame track of the driver's meter pass)
-    scene.film = dataclasses.replace(scene.film, exposure_ev=ev, frame_ev=frame_ev)
+    film = scene.film                                   # as configured: render.json records it
+    probe, ev, cycles_ev, settings = exposure_probe(scene, p)
+    # every worker: the same exposures (fixed EV; the per-frame track comes with each block, metered below)
+    scene.film = dataclasses.replace(scene.film, exposure_ev=ev)
     # each worker's Open3D casts and Cycles get the executor's per-worker thread budget (0: all cores)
     nthreads = ex_params.threads if parallel else 0
     cycles_threads = ex_params.threads if parallel else 0
     gather = None
-    if parallel and p.indirect_bounces > 0:             # built once, by the meter and the probe above
+    if parallel and p.indirect_bounces > 0:             # built once, by the probe above
         from .indirect import gather_cache
 
         gather = gather_cache()
     init = (frame_worker, (scene, p, str(seq), src, ts, poses, nthreads, cycles_ev, cycles_threads, gather))
     storage = StorageParams.from_dict(p.storage)
+    # blocks small enough that every worker gets several (the executor hands out contiguous chunks of them)
+    split = max(1, -(-len(src) // (4 * ex_params.workers))) if parallel else len(src)
     with make_executor(ex_params, init=init) as ex:
-        # blocks small enough that every worker gets several (the executor hands out contiguous chunks of them)
-        block = storage.write_block if not parallel else \
-            max(1, min(storage.write_block, -(-len(src) // (4 * ex_params.workers))))
-        blocks = ex.map(render_block, frame_blocks(len(src), block), desc=f"render {key} (blocks of {block} frames)")
+        frame_ev = None
+        if per_frame_exposure(p):     # the meter: each frame on a worker, then smoothed in time here, in order
+            from .exposure import smooth_exposures
+
+            raw = [x for b in ex.map(meter_block, frame_blocks(len(src), split), desc=f"meter {key}") for x in b]
+            frame_ev = tuple(float(x) for x in smooth_exposures(np.array([e for e, _ in raw]), scene.timestamps,
+                                                                 exposure_params(p), np.array([h for _, h in raw])))
+            scene.film = dataclasses.replace(scene.film, frame_ev=frame_ev)
+        renderer_meta = renderer_metadata(probe, film, p, frame_ev, settings, cycles_ev)
+        block = storage.write_block if not parallel else min(storage.write_block, split)
+        blocks = ex.map(render_block, [(a, b, frame_ev) for a, b in frame_blocks(len(src), block)],
+                        desc=f"render {key} (blocks of {block} frames)")
     return RenderedSequence(params=p, camera=cam, legend=legend, renderer_meta=renderer_meta, frame_ev=frame_ev,
                             results=[r for b in blocks for r in b], workers=ex_params.workers)

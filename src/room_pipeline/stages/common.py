@@ -39,15 +39,26 @@ def metadata(stage: str, patient: str, cfg: DictConfig, keys: tuple[str, ...], *
             "config": config_section(cfg, *keys), "conventions": metadata_block(), **extra}
 
 
+def _cpu_s() -> float:
+    """User + system CPU seconds of this process and of its reaped children (worker processes), so far."""
+    return sum(r.ru_utime + r.ru_stime for r in (resource.getrusage(resource.RUSAGE_SELF),
+                                                 resource.getrusage(resource.RUSAGE_CHILDREN)))
+
+
 class StageTimer:
-    """Wall time and peak resident memory of the stage process."""
+    """Wall time, CPU time and peak resident memory of the stage process.
+
+    ``cpu_s``: user + system CPU of the stage process and of the worker processes it started and reaped inside
+    the block (an executor's pool is shut down, so reaped, when its ``with`` block ends)."""
 
     def __enter__(self) -> "StageTimer":
         self.t0 = time.perf_counter()
+        self.c0 = _cpu_s()
         return self
 
     def __exit__(self, *exc: Any) -> None:
         self.wall_s = time.perf_counter() - self.t0
+        self.cpu_s = _cpu_s() - self.c0
 
     @staticmethod
     def peak_rss_mb() -> float:

@@ -16,7 +16,6 @@ different noise in every frame and sequence.
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,11 +26,10 @@ from ..config.compose import section
 from ..conventions import metadata_block
 from ..errors import InputError
 from ..io.atomic import write_json
-from ..io.images import read_png, write_png8
 from ..noise.params import (PROJECT_ROOT, NoiseParams, frame_seed, resolve_profile,  # noqa: F401 (re-exported)
                              sequence_hash)
 from ..noise.profile import NoiseProfile
-from ..noise.synthesize import add_noise, filter_table
+from ..noise.sequence import FrameJob, noise_frames
 from ..io.hashing import sha256_file
 from .common import StageTimer, metadata, patient_paths, write_metrics, write_sequence_record
 
@@ -62,32 +60,20 @@ def run(cfg: DictConfig, key: str) -> dict:
     if not frames:
         raise InputError(f"{src_dir}: no rendered frames (frame_NNNN.png); run the render stage with rgb")
     profile_file = p.profile_path()
-    profile = NoiseProfile.load(profile_file)
+    profile = NoiseProfile.load(profile_file)            # a bad profile stops here, before any worker starts
     out_dir.mkdir(parents=True, exist_ok=True)
     names = {f.name for f in frames}
     for stale in out_dir.glob("frame_*.png"):
         if stale.name not in names:
             stale.unlink()
-    records, added_std, clipped, synth_s, table_s = [], [], [], 0.0, 0.0
-    with StageTimer() as timer:
-        for f in frames:
-            idx = frame_index(f)
-            clean = read_png(f)
-            if clean.dtype != np.uint8 or clean.ndim != 3 or clean.shape[2] != 3:
-                raise InputError(f"{f}: expected an 8-bit RGB render, got {clean.dtype} {clean.shape}")
-            ss = frame_seed(p.seed, sequence, idx)
-            t0 = time.perf_counter()
-            filter_table(profile, clean.shape[:2])          # built once per frame size, cached
-            table_s += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            noisy = add_noise(clean, profile, p.beta, ss)
-            synth_s += time.perf_counter() - t0
-            write_png8(out_dir / f.name, noisy)
-            diff = noisy.astype(np.int16) - clean.astype(np.int16)
-            added_std.append(float(diff.std()))
-            clipped.append(float(np.mean((noisy == 0) | (noisy == 255))))
-            records.append({"file": f.name, "index": idx, "seed_entropy": [int(v) for v in ss.entropy],
-                            "added_std_levels": round(added_std[-1], 6)})
+    jobs = [FrameJob(f, out_dir / f.name, frame_index(f)) for f in frames]
+    with StageTimer() as timer:      # the frames shared among the execution workers (noise/sequence.py)
+        done = noise_frames(jobs, profile_file, p.beta, p.seed, sequence, cfg.get("execution"))
+    added_std = [d["added_std_levels"] for d in done]
+    clipped = [d["clipped_value_fraction"] for d in done]
+    synth_s, table_s = sum(d["synthesis_s"] for d in done), sum(d["table_s"] for d in done)
+    records = [{"file": d["file"], "index": d["index"], "seed_entropy": d["seed_entropy"],
+                "added_std_levels": round(d["added_std_levels"], 6)} for d in done]
     write_json(seq.noise_json, {
         "input": f"{IN_FOLDER}/frame_NNNN.png (clean renders, kept)",
         "output": f"{OUT_FOLDER}/frame_NNNN.png = clip(round(rgb + beta * g(luma) * n), 0, 255), uint8 sRGB",

@@ -50,6 +50,8 @@ def run(cfg: DictConfig, key: str) -> dict:
     write_json(sp.camera, docs["camera"])
     write_json(sp.render_json, docs["render"])
     metrics = out.metrics(timer.wall_s)
+    metrics["cpu_time_s"] = round(timer.cpu_s, 3)        # driver + its workers, every modality and the meter
+    metrics["cpu_seconds_per_frame"] = round(timer.cpu_s / max(1, metrics["frames"]), 4)
     if "rgb" in p.modalities:   # realism metrics of the clean RGB (room_pipeline.realism; real-frame distances: room realism)
         from ..realism import sequence_metrics
 
