@@ -78,6 +78,7 @@ SMOKE = {
     "cycles_reference.py": (["--quick"], ("bpy", "run")),
     "cycles_residual.py": (["--quick", "--direct"], ("bpy", "run")),
     "realism_indirect_pt.py": (["--quick", "--max-edge", "0,2.0"], ("run",)),
+    "pipeline_timing.py": ([str(RUN), "--name", "pipeline_timing_smoke"], ("run",)),
 }
 
 #: scripts without a smoke mode (yet) -> why
