@@ -86,12 +86,12 @@ def main() -> int:
         cpf = f"{r['cpu_s_per_frame']:.3f}" if r["cpu_s_per_frame"] is not None else ""
         lines.append(f"| {r['stage']} | {r['patient']} | {r['wall_s']:.1f} | {cpu} | {cpf} |")
     md = "\n".join(lines) + "\n"
-    print(md)
     out = ROOT / "benchmarks" / "results"
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{args.name}.json").write_text(json.dumps({"whole": whole, "stages": rows, "stage_wall_sum_s": total},
                                                       indent=1) + "\n")
     (out / f"{args.name}.md").write_text(md)
+    print(md)                                          # after the files: a closed pipe loses no result
     return 0
 
 
