@@ -181,6 +181,28 @@ def test_exposure_follows_the_scene_no_blowout_near_the_wall():
     assert (fixed >= 250).any(-1).mean() > (outs[3]["rgb"] >= 250).any(-1).mean()
 
 
+def test_meter_in_blocks_on_one_thread_is_the_one_process_meter_bit_for_bit():
+    """The render stage meters frames on its workers (render/sequence.meter_block: contiguous blocks, one Open3D
+    thread each) and smooths in the driver; that must be exposure_track's every-frame-here result, bit for bit."""
+    from room_pipeline.render.exposure import ExposureMeter, raw_exposures
+
+    mesh = tube(radius=5 * MM, z0=-5 * MM, z1=120 * MM)
+    poses = [look([0, 0, z * MM], [0, 0.2 * (z % 3 - 1), 1.0]) for z in (5, 15, 25, 35, 45)] + \
+        [look([0, 4.5 * MM, 40 * MM], [0, 1.0, 0.3])]
+    sc = textured_scene(mesh, poses, straight_graph())
+    sc.timestamps = np.arange(len(poses)) * 0.1
+    ind = default_indirect()
+    raw, limit = raw_exposures(sc, EXP, 0, ind)
+    blocks = [(0, 2), (2, 5), (5, 6)]
+    meters = [ExposureMeter(sc, EXP, 1, ind) for _ in blocks]       # as separate workers would, one thread each
+    got = [x for m, (a, b) in zip(meters, blocks) for x in (m.frame(i) for i in range(a, b))]
+    assert [e for e, _ in got] == raw.tolist() and [h for _, h in got] == limit.tolist()
+    track = tuple(float(x) for x in smooth_exposures(np.array([e for e, _ in got]), sc.timestamps, EXP,
+                                                     np.array([h for _, h in got])))
+    assert track == exposure_track(sc, EXP, indirect=ind)
+    assert len(set(track)) > 1                                       # the frames differ: not a vacuous equality
+
+
 # --------------------------------------------------------------------------- hard views
 
 

@@ -3,7 +3,7 @@ domain code).
 
 Each frame is independent: its noise is drawn from its own seed (:func:`~room_pipeline.noise.params.frame_seed`),
 so the bytes of every ``rgb_noisy`` frame, and the statistics returned in frame order, are the same with any
-backend or worker count (``tests/test_noise_sequence.py``).  A worker loads the profile once and builds the
+backend or worker count (``tests/test_noise.py``).  A worker loads the profile once and builds the
 filter table once per frame size; it reads a PNG, adds the noise and writes the PNG atomically, and only a few
 numbers per frame come back.
 """

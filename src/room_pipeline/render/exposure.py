@@ -32,8 +32,9 @@ For each frame ``i`` (in pose order):
 
 Each frame's steps 1-2 are the same arithmetic in whichever process meters
 it, and 3-5 sequential numpy in one: same scene, same parameters -> same
-exposures, bit for bit (tests/test_realism.py checks two workers against one
-process).
+exposures, bit for bit (tests/test_realism.py: the meter in blocks on one thread
+equals the one-process meter; tests/test_execution.py: the render stage's bytes
+with two workers equal one process's).
 """
 from __future__ import annotations
 
