@@ -305,9 +305,15 @@ class AirwayTree:
         P = np.concatenate(pts)
         N = np.concatenate(nrm)
         keep = np.ones(len(P), dtype=bool)
+        index = cKDTree(P)
         for b in self.branches:
-            _, dist = _segment_closest(P, b.start, b.end)
-            keep &= ~(dist < b.radius - 1e-9)
+            # only points within the branch's bounding ball can lie inside it (same result as testing all)
+            near = np.asarray(index.query_ball_point(0.5 * (b.start + b.end), 0.5 * b.length + b.radius + 1e-9),
+                              dtype=np.int64)
+            if len(near) == 0:
+                continue
+            _, dist = _segment_closest(P[near], b.start, b.end)
+            keep[near[dist < b.radius - 1e-9]] = False
         return P[keep], N[keep]
 
     # --------------------------------------------------------------- (de)serialise
