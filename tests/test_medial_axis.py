@@ -147,6 +147,20 @@ def test_metrics_missing_and_spurious_branch():
     assert m["detection_rate"] == 1.0
 
 
+def test_bifurcation_error_of_the_found_bifurcations_leaves_out_the_missed_subtrees():
+    """A tree found only in part: the error over every true bifurcation counts the misses (distance to the
+    nearest found junction), the error over the found ones (branch and two children detected) does not."""
+    truth = _g([(0, -1, 0, [[0, 0, 0], [0, 0, -20]], 4.0), (1, 0, 1, [[0, 0, -20], [10, 0, -30]], 3.0),
+                (2, 0, 1, [[0, 0, -20], [-10, 0, -30]], 3.0),
+                (3, 2, 2, [[-10, 0, -30], [-20, 0, -40]], 2.0), (4, 2, 2, [[-10, 0, -30], [-10, 10, -40]], 2.0)])
+    ext = _g([(0, -1, 0, [[0, 0, 0], [0, 0.5, -20]], 4.0), (1, 0, 1, [[0, 0.5, -20], [10, 0, -30]], 3.0),
+              (2, 0, 1, [[0, 0.5, -20], [-10, 0, -30]], 3.0)])        # the distal junction's children missed
+    m = centreline_metrics(ext, truth, 1 * MM)
+    assert m["n_true_bifurcations"] == 2 and m["n_true_bifurcations_detected"] == 1
+    assert m["bifurcation_error_median_m"] > 5 * MM                     # the missed junction, 14 mm away
+    assert m["bifurcation_error_detected_median_m"] == pytest.approx(0.5 * MM, rel=1e-6)
+
+
 def test_metrics_large_branch_filter():
     truth = _g([(0, -1, 0, [[0, 0, 0], [0, 0, -20]], 4.0), (1, 0, 1, [[0, 0, -20], [10, 0, -30]], 3.0),
                 (2, 0, 1, [[0, 0, -20], [-10, 0, -30]], 0.5)])

@@ -128,4 +128,16 @@ def centreline_metrics(extracted: CentrelineGraph, truth: CentrelineGraph, voxel
         out["bifurcation_error_p95_m"] = float(np.percentile(db, 95))
     else:
         out["bifurcation_error_median_m"] = float("nan")
+    # the same among the true bifurcations that were found: the branch and two or more of its children
+    # detected (where a tree is found only in part, the figure above mostly counts the misses)
+    found = {p[0] for p in per_branch if p[4]}
+    bt_found = np.array([b.points[-1] for b in truth.branches
+                         if b.id in found and sum(c.id in found for c in truth.children(b.id)) >= 2]).reshape(-1, 3)
+    out["n_true_bifurcations_detected"] = len(bt_found)
+    if len(bt_found) and len(be):
+        db, _ = cKDTree(be).query(bt_found)
+        out["bifurcation_error_detected_median_m"] = float(np.median(db))
+        out["bifurcation_error_detected_p95_m"] = float(np.percentile(db, 95))
+    else:
+        out["bifurcation_error_detected_median_m"] = float("nan")
     return out
