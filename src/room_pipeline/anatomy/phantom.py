@@ -33,6 +33,7 @@ their public names.
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import numpy as np
 from scipy import ndimage
@@ -96,18 +97,20 @@ def _ellipse_sd(x, y, centre, axes):
     return (u * u + v * v - 1.0) / np.maximum(g, 1e-6)
 
 
-def _grid(tree: AirwayTree, params: PhantomParams) -> tuple[np.ndarray, tuple[int, int, int]]:
+def _grid(tree: AirwayTree, params: PhantomParams, body: bool = True) -> tuple[np.ndarray, tuple[int, int, int]]:
     """Affine (voxel -> world metres, axis-aligned RAS+) and shape of the phantom's field of view.
 
     The tree's bounding box plus ``margin_mm``, widened in x/y to hold the body
-    outline plus ``margin_mm`` of air; the top is lowered by ``crop_top_mm``.
+    outline plus ``margin_mm`` of air (``body``; else the field of view lies
+    inside the body); the top is lowered by ``crop_top_mm``.
     """
     sp = np.array(params.spacing_mm) * MM
     margin = params.margin_mm * MM
     lo, hi = tree.bounds(margin)
-    bc, ba = _body_ellipse(params)
-    lo[:2] = np.minimum(lo[:2], bc - ba - margin)
-    hi[:2] = np.maximum(hi[:2], bc + ba + margin)
+    if body:
+        bc, ba = _body_ellipse(params)
+        lo[:2] = np.minimum(lo[:2], bc - ba - margin)
+        hi[:2] = np.maximum(hi[:2], bc + ba + margin)
     if params.crop_top_mm > 0:
         hi[2] = tree.branch(0).start[2] - params.crop_top_mm * MM
     shape = tuple(int(v) for v in np.floor((hi - lo) / sp).astype(int) + 1)
@@ -182,9 +185,17 @@ def _tree_sdf_tiled(tree: AirwayTree, ijk: np.ndarray, affine: np.ndarray, band:
     return out, exact
 
 
-def rasterise(tree: AirwayTree, params: PhantomParams, rng: np.random.Generator) -> Phantom:
-    """CT (int16 HU) and ground truth of ``tree`` on the phantom's grid; see the module docstring."""
-    affine, shape = _grid(tree, params)
+def rasterise(tree: AirwayTree, params: PhantomParams, rng: np.random.Generator,
+              lungs: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None) -> Phantom:
+    """CT (int16 HU) and ground truth of ``tree`` on the phantom's grid; see the module docstring.
+
+    ``lungs``: None for the phantom's own lungs and body (half-ellipsoids in an elliptic body, the field of
+    view reaching past the skin); else a function of the grid's axes ``(xs, ys, zs)`` (metres) giving the
+    lungs' signed distance (float32, metres, < 0 inside) on the whole grid, and the field of view (the
+    tree's bounding box + ``margin_mm``) lies inside the body: soft tissue wherever it is not lung
+    (:func:`~room_pipeline.anatomy.reference_tree.hull_lungs`, for measured trees).
+    """
+    affine, shape = _grid(tree, params, body=lungs is None)
     sp = np.diag(affine)[:3]
     xs, ys, zs = (affine[a, 3] + sp[a] * np.arange(shape[a]) for a in range(3))
     h = float(np.mean(sp))
@@ -208,19 +219,25 @@ def rasterise(tree: AirwayTree, params: PhantomParams, rng: np.random.Generator)
 
     # ---- tissue layers, outside in
     x32, y32, z32 = (a.astype(np.float32) for a in (xs, ys, zs))
-    hu = np.full(shape, params.hu_air, dtype=np.float32)
-    bc, ba = _body_ellipse(params)
-    s_body = _ellipse_sd(x32[:, None], y32[None, :], bc, ba).astype(np.float32)
-    _mix(hu, np.float32(params.hu_fat), _coverage(s_body, h)[:, :, None])
-    inner = ba - params.fat_thickness_mm * MM
-    s_inner = _ellipse_sd(x32[:, None], y32[None, :], bc, inner).astype(np.float32)
-    _mix(hu, np.float32(params.hu_soft_tissue), _coverage(s_inner, h)[:, :, None])
+    if lungs is None:
+        hu = np.full(shape, params.hu_air, dtype=np.float32)
+        bc, ba = _body_ellipse(params)
+        s_body = _ellipse_sd(x32[:, None], y32[None, :], bc, ba).astype(np.float32)
+        _mix(hu, np.float32(params.hu_fat), _coverage(s_body, h)[:, :, None])
+        inner = ba - params.fat_thickness_mm * MM
+        s_inner = _ellipse_sd(x32[:, None], y32[None, :], bc, inner).astype(np.float32)
+        _mix(hu, np.float32(params.hu_soft_tissue), _coverage(s_inner, h)[:, :, None])
 
-    s_lung = np.full(shape, np.inf, dtype=np.float32)
-    for c, a, base in _lung_shapes(params):
-        np.minimum(s_lung, _half_ellipsoid_sd(x32[:, None, None], y32[None, :, None], z32[None, None, :],
-                                              c.astype(np.float32), a.astype(np.float32), np.float32(base)),
-                   out=s_lung)
+        s_lung = np.full(shape, np.inf, dtype=np.float32)
+        for c, a, base in _lung_shapes(params):
+            np.minimum(s_lung, _half_ellipsoid_sd(x32[:, None, None], y32[None, :, None], z32[None, None, :],
+                                                  c.astype(np.float32), a.astype(np.float32), np.float32(base)),
+                       out=s_lung)
+    else:
+        hu = np.full(shape, params.hu_soft_tissue, dtype=np.float32)
+        s_lung = np.asarray(lungs(xs, ys, zs), dtype=np.float32)
+        if s_lung.shape != shape:
+            raise ValueError(f"lungs gave an array of shape {s_lung.shape}, the grid is {shape}")
     lung = _coverage(s_lung, h)
     del s_lung
     texture = rng.standard_normal(shape, dtype=np.float32)

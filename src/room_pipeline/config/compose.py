@@ -130,9 +130,25 @@ def section(cfg: DictConfig, key: str) -> dict:
 
 @dataclasses.dataclass(frozen=True)
 class PhantomEntry:
-    """``phantoms.<patient>``: a phantom patient's entry (conf/patients/*.yaml); ``seed``: its random tree's seed."""
+    """``phantoms.<patient>``: a phantom patient's entry (conf/patients/*.yaml).
+
+    ``seed``: the seed of its random tree and CT texture and noise.  ``tree``: null for a grown tree, else
+    the path of a measured tree's branch table (:mod:`room_pipeline.anatomy.reference_tree`; the seed then
+    draws the CT's texture and noise only), whose axes are ``tree_frame`` (RAS or LPS) and whose content is
+    pinned by ``tree_sha256`` (required with ``tree``: DVC tracks params, not the file, so a table changed
+    in place stops the stage with one line instead of leaving the old outputs cached).
+    """
 
     seed: int = 0
+    tree: str | None = None
+    tree_frame: str = "RAS"
+    tree_sha256: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.tree_frame not in ("RAS", "LPS"):
+            raise ConfigError(f"tree_frame must be RAS or LPS, got {self.tree_frame!r}")
+        if self.tree is not None and not self.tree_sha256:
+            raise ConfigError(f"tree_sha256 is required with tree ({self.tree}): the sha256 of the table's bytes")
 
 
 def phantom_entry(cfg: Mapping[str, Any], patient: str) -> PhantomEntry:
@@ -146,7 +162,12 @@ def phantom_entry(cfg: Mapping[str, Any], patient: str) -> PhantomEntry:
         entry = OmegaConf.to_container(entry, resolve=True)
     if entry is not None and not isinstance(entry, Mapping):
         raise ConfigError(f"phantoms.{patient} must be a mapping (seed: N), got {entry!r}")
-    return params_from_dict(PhantomEntry, entry, f"phantoms.{patient}")
+    try:
+        return params_from_dict(PhantomEntry, entry, f"phantoms.{patient}")
+    except ConfigError as exc:
+        if str(exc).startswith(f"phantoms.{patient}") or str(exc).startswith(f"unknown key 'phantoms.{patient}"):
+            raise
+        raise ConfigError(f"phantoms.{patient}: {exc}") from None
 
 
 def patient_entry(cfg: DictConfig, patient: str) -> dict:

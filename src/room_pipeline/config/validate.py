@@ -105,7 +105,7 @@ def _first_line(exc: BaseException) -> str:
 
 
 def _check_patients(cfg: DictConfig) -> None:
-    from .compose import patient_entry
+    from .compose import patient_entry, phantom_entry
 
     patients = cfg.get("patients")
     if not patients:
@@ -117,6 +117,7 @@ def _check_patients(cfg: DictConfig) -> None:
         seed = OmegaConf.select(cfg, f"phantoms.{pid}.seed", default=None)
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ConfigError(f"phantoms.{pid}.seed must be an integer >= 0, got {seed!r}")
+        phantom_entry(cfg, str(pid))
     seqs = cfg.get("sequences")
     if seqs is None or isinstance(seqs, (str, int, float)) or len(seqs) == 0:
         raise ConfigError(f"sequences must be a non-empty list of sequence ids, got {seqs!r}")
