@@ -91,6 +91,8 @@ NO_SMOKE = {
     "collision_speed.py": "simulates a real mask's route on several collision surfaces; minutes of PyBullet, no size option",
     "anatomy_memory.py": "runs the anatomy chain on a real mask up to a stage; no smaller input option",
     "real_tree_robustness.py": "the anatomy chain on perturbed real masks: minutes per case even for one",
+    "reference_tree.py": ("the anatomy chain and its validation on the 3597-branch Schmidt tree's CT (about 4 min); "
+                          "its stages run in tests/test_real_pipeline.py's exhaustive tier"),
     "collision_corridor.py": "no size option; owned by the collision work in progress",
     "collision_face_order.py": ("five whole simulations of the test phantom (minutes of PyBullet); it measures the "
                                 "floor under test_collision_corridor, which runs the same code"),
