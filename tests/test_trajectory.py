@@ -430,6 +430,17 @@ def test_user_start_pose_is_the_route_start(tmp_path):
         read_start_pose(bad)
 
 
+def test_user_start_pose_where_the_scope_does_not_fit_is_one_line_naming_the_pose():
+    """Med-MPD's start poses lie in peripheral airways of ~1 mm radius: a 5 mm scope cannot start there.  The
+    error names the pose and what to change, not only the target branch."""
+    tree = chain_tree([(0, (0.4, 0, -1), 0.03, 1.0e-3), (0, (-0.4, 0, -1), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 0.25e-3)
+    thin = graph.branch(1).points[len(graph.branch(1).points) // 2]
+    with pytest.raises(InputError, match=r"^start pose \(.*\) mm: the scope does not fit there") as exc:
+        plan_path(graph, 1, tree, _TrajectoryParams(), start=thin)      # the config defaults
+    assert "min_lumen_radius_mm" in str(exc.value) and "\n" not in str(exc.value)
+
+
 def test_target_outside_lumen_says_how_far_and_why():
     """Issue #18 item 3: a nodule in the parenchyma: the route ends at the nearest airway point, and the
     metadata give the distance from the last pose to the target and the reason."""

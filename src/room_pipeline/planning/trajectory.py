@@ -217,6 +217,17 @@ def _start(graph: CentrelineGraph, info: TargetInfo, params: TrajectoryParams, s
                          "is not used (the view follows the route)"}
 
 
+def _no_reachable_point(info, start_doc: dict, why: str) -> str:
+    """The one-line error of a route that fails within its first millimetres: from a user start pose, it names
+    the pose (the scope does not fit where the user put it); from the trachea, the target."""
+    if start_doc.get("kind") == "user_pose":
+        where = ", ".join(f"{v / MM:.1f}" for v in start_doc["position"])
+        return (f"start pose ({where}) mm: the scope does not fit there ({why}; branch {start_doc['branch_id']}): "
+                f"give a start pose nearer the trachea, or a thinner scope (trajectory.min_lumen_radius_mm, "
+                f"robot geometry)")
+    return f"target branch {info.branch_id}: no reachable point on its route ({why})"
+
+
 def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams | None = None,
               geometry: ScopeGeometry | None = None, start=None) -> Trajectory:
     """Plan one trajectory from the trachea entry to ``target`` (a branch id or an (3,) point in metres).
@@ -250,7 +261,7 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
         reason = "lumen_narrower_than_scope"
         s_new = s_narrow - params.nearest_backoff_mm * MM
         if s_new < h_min:
-            raise InputError(f"target branch {info.branch_id}: no reachable point on its route ({msg})")
+            raise InputError(_no_reachable_point(info, start_doc, msg))
         route = _truncate(full, s_new)
     while True:
         res = smooth_route(route.points, route.radius, route.s, fn, kmax, params)
@@ -271,7 +282,7 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
         reason = reason or why
         s_new = min(s_fail, route.length) - params.nearest_backoff_mm * MM
         if s_new < h_min:
-            raise InputError(f"target branch {info.branch_id}: no reachable point on its route ({first_fail})")
+            raise InputError(_no_reachable_point(info, start_doc, first_fail))
         route = _truncate(route, s_new)
     if route is not full:
         end = traj.positions[-1]
