@@ -93,6 +93,14 @@ def test_tree_metrics_known_answer():
     assert g["0"]["tree_length_detected"] == 1.0 and g["0"]["branches_detected"] == 1.0
     assert g["1"]["tree_length_detected"] == pytest.approx(28 / 40, abs=0.02)
     assert g["1"]["branches_detected"] == 0.5
+    # by lumen radius: the trachea (4 mm) alone in 3-5 mm, both children (3 mm) in 3-5 mm too; 2-3 mm empty
+    r = m["per_radius_mm"]
+    assert set(r) == {"3-5"} and r["3-5"]["n_branches"] == 3 and r["3-5"]["n_branches_detected"] == 2
+    thin = tree.centreline(0.3 * MM)
+    thin["radius"] = np.where(thin["branch"] == 2, 0.9 * MM, thin["radius"])     # child 2 as a 0.9 mm airway
+    rt = tree_metrics(pred, thin, {b.id: b.length for b in tree.branches})["per_radius_mm"]
+    assert rt["0.75-1"]["n_branches"] == 1 and rt["0.75-1"]["branches_detected"] == 0.0
+    assert rt["3-5"]["branches_detected"] == 1.0
     # without branch lengths the weights come from the arclength steps: same answer
     m2 = tree_metrics(pred, cl)
     assert m2["tree_length_detected"] == pytest.approx(m["tree_length_detected"], abs=0.01)
