@@ -26,7 +26,8 @@ from room_pipeline.paths import PatientPaths  # noqa: E402
 
 
 def stage_rows(output_dir: Path) -> list[dict]:
-    """One row per timing file of every patient: stage (file stem), patient, wall / CPU s, CPU s per frame."""
+    """One row per timing file of every patient: stage (file stem), patient, wall / CPU s, CPU s per frame, peak RSS
+    (MiB, the stage process's own)."""
     rows = []
     for patient in sorted(d.name for d in output_dir.iterdir() if d.is_dir()):
         folder = PatientPaths(output_dir, patient).metrics("x").parent       # the catalogue's metrics folder
@@ -36,7 +37,7 @@ def stage_rows(output_dir: Path) -> list[dict]:
                 continue
             rows.append({"stage": f.name[:-len(TIMING_SUFFIX)], "patient": patient,
                          "wall_s": float(d["wall_time_s"]), "cpu_s": d.get("cpu_time_s"),
-                         "cpu_s_per_frame": d.get("cpu_seconds_per_frame")})
+                         "cpu_s_per_frame": d.get("cpu_seconds_per_frame"), "peak_rss_mb": d.get("peak_rss_mb")})
     return rows
 
 
@@ -79,12 +80,22 @@ def main() -> int:
         lines += [f"Whole command (`/usr/bin/time -v`): **{whole['wall_s'] / 60:.1f} min wall**, "
                   f"{whole['user_s']:.0f} s user + {whole['system_s']:.0f} s system CPU, peak RSS "
                   f"{whole['peak_rss_mb']:.0f} MiB, exit status {whole['exit_status']}.", ""]
-    lines += [f"Stages' own walls sum to {total:.0f} s ({total / 60:.1f} min).", "",
-              "| stage | patient | wall s | CPU s | CPU s / frame |", "|---|---|---|---|---|"]
+    lines += [f"Stages' own walls sum to {total:.0f} s ({total / 60:.1f} min).", ""]
+    peaks: dict[str, dict] = {}
+    for r in rows:
+        stage = r["stage"].split("_sequence_")[0]
+        if r["peak_rss_mb"] is not None and r["peak_rss_mb"] > peaks.get(stage, {}).get("peak_rss_mb", -1):
+            peaks[stage] = r
+    if peaks:
+        lines += ["Largest peak RSS of each stage over the patients: " + ", ".join(
+            f"{k} {v['peak_rss_mb']:.0f} MiB ({v['patient']})"
+            for k, v in sorted(peaks.items(), key=lambda kv: -kv[1]["peak_rss_mb"])) + ".", ""]
+    lines += ["| stage | patient | wall s | CPU s | CPU s / frame | peak RSS MiB |", "|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: -r["wall_s"]):
         cpu = f"{r['cpu_s']:.1f}" if r["cpu_s"] is not None else ""
         cpf = f"{r['cpu_s_per_frame']:.3f}" if r["cpu_s_per_frame"] is not None else ""
-        lines.append(f"| {r['stage']} | {r['patient']} | {r['wall_s']:.1f} | {cpu} | {cpf} |")
+        rss = f"{r['peak_rss_mb']:.0f}" if r["peak_rss_mb"] is not None else ""
+        lines.append(f"| {r['stage']} | {r['patient']} | {r['wall_s']:.1f} | {cpu} | {cpf} | {rss} |")
     md = "\n".join(lines) + "\n"
     out = ROOT / "benchmarks" / "results"
     out.mkdir(parents=True, exist_ok=True)

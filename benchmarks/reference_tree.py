@@ -4,8 +4,8 @@ A reference-tree patient (``conf/patients/reference_tree.yaml``: the Schmidt et 
 tree, 3597 branches, generations 0-17, read by :mod:`room_pipeline.anatomy.reference_tree` and rasterised
 by the phantom's CT model with exact ground truth) goes through ``room run ... --until validate_centreline``;
 the validation stages' metrics are tabulated per generation: the tree's median lumen radius, how many of
-its branches the segmentation reaches (ATM'22 BD / TD, ``anatomy_validation.json``), and how many the
-medial axis finds, fed the segmentation (end to end) and fed the true mask (isolation,
+its branches the segmentation reaches (ATM'22 BD / TD, ``anatomy_validation.json``; also by lumen radius), and
+how many the medial axis finds, fed the segmentation (end to end) and fed the true mask (isolation,
 ``centreline_validation.json``).  A grown phantom (``--phantom``, default ``patient_001`` of the default
 config) runs the same way beside it; other finished runs are tabulated with ``--runs LABEL=PATIENT_DIR``.
 
@@ -57,6 +57,9 @@ def _table(output_dir: Path, patient: str) -> dict:
         rows.append({"generation": g, "n": len(r), "radius_median_mm": round(float(np.median(r)), 2),
                      "segment_bd": pg.get("branches_detected"), "segment_td": pg.get("tree_length_detected"),
                      "centreline_e2e": e.get("rate"), "centreline_isolation": i.get("rate")})
+    by_radius = [{"radius_mm": k, "n": v["n_branches"], "segment_bd": v["branches_detected"],
+                  "segment_td": v["tree_length_detected"]}
+                 for k, v in seg.get("per_radius_mm", {}).items()]
     timing = {}
     for stage in ("phantom", "segment", "sdf", "mesh", "medial_axis", "validate_anatomy", "validate_centreline"):
         f = paths.stage_timings(stage)
@@ -70,7 +73,7 @@ def _table(output_dir: Path, patient: str) -> dict:
                                                                  "bifurcation_error_detected_median_m")})
     head.update({"centreline_isolation_detection_rate_large": c["isolation"]["detection_rate_large"],
                  "checks_failed": sorted(k for k, v in {**a["checks"], **c["checks"]}.items() if not v)})
-    return {"headline": head, "generations": rows, "timing": timing}
+    return {"headline": head, "generations": rows, "radii": by_radius, "timing": timing}
 
 
 def _fmt(v) -> str:
@@ -122,6 +125,11 @@ def main() -> None:
         for r in t["generations"]:
             lines.append(f"| {r['generation']} | {r['n']} | {r['radius_median_mm']:.2f} | {_fmt(r['segment_bd'])} | "
                          f"{_fmt(r['segment_td'])} | {_fmt(r['centreline_e2e'])} | {_fmt(r['centreline_isolation'])} |")
+        if t["radii"]:
+            lines += ["", f"## {label}: by lumen radius (a branch's median)", "",
+                      "| radius (mm) | branches | segment BD | segment TD |", "|---|---|---|---|"]
+            lines += [f"| {r['radius_mm']} | {r['n']} | {r['segment_bd']:.3f} | {r['segment_td']:.3f} |"
+                      for r in t["radii"]]
         lines += ["", "Stage wall time / peak RSS: " + ", ".join(
             f"{k} {v['wall_time_s']:.0f} s / {v['peak_rss_mb']:.0f} MB" for k, v in t["timing"].items()
             if v.get("wall_time_s") is not None and v.get("peak_rss_mb") is not None)]
