@@ -23,6 +23,10 @@ def _stats(err: np.ndarray, voxel: float, prefix: str) -> dict:
             f"{prefix}mean_vox": mean / voxel, f"{prefix}p95_vox": p95 / voxel, f"{prefix}max_vox": mx / voxel}
 
 
+#: points per call of the tree's SDF in :meth:`TreeTruth.grid_band` (bounds its memory: ~0.4 GB of arrays)
+GRID_BAND_SLAB_VOXELS = 4_000_000
+
+
 class TreeTruth:
     """The exact quantities of one :class:`AirwayTree` that comparisons need, each computed once per argument:
     its signed distance at a grid's voxel centres within a band of the wall, and its surface samples.
@@ -53,12 +57,25 @@ class TreeTruth:
         b = np.clip(np.ceil(w.max(axis=0)).astype(int) + 1, 0, shape)
         aff = np.asarray(vol.affine, dtype=np.float64)
         ii, jj, kk = (np.arange(a[d], b[d], dtype=np.float64) for d in range(3))
-        # voxel centres of the block, world metres (the affine applied by broadcasting: no (N, 3) index array)
-        pts = (aff[:3, 3] + ii[:, None, None, None] * aff[:3, 0] + jj[None, :, None, None] * aff[:3, 1]
-               + kk[None, None, :, None] * aff[:3, 2]).reshape(-1, 3)
-        true, exact = tree.sdf(pts, band=band * 1.5 + 1e-9)
-        sel = np.flatnonzero(exact & (np.abs(true) <= band))
-        return tuple(slice(int(a[d]), int(b[d])) for d in range(3)), sel, true[sel]
+        # slabs of the block along its first axis, each at most GRID_BAND_SLAB_VOXELS (a measured tree's grid is
+        # its bounding box: the block is the whole 52 M-voxel volume); each point's value does not depend on
+        # the others in its call, so the slabs give the whole block's arrays
+        plane = max(1, len(jj) * len(kk))
+        step = max(1, GRID_BAND_SLAB_VOXELS // plane)
+        sels, trues = [], []
+        for i0 in range(0, len(ii), step):
+            sub = ii[i0:i0 + step]
+            # voxel centres, world metres (the affine applied by broadcasting: no (N, 3) index array)
+            pts = (aff[:3, 3] + sub[:, None, None, None] * aff[:3, 0] + jj[None, :, None, None] * aff[:3, 1]
+                   + kk[None, None, :, None] * aff[:3, 2]).reshape(-1, 3)
+            true, exact = tree.sdf(pts, band=band * 1.5 + 1e-9)
+            sel = np.flatnonzero(exact & (np.abs(true) <= band))
+            sels.append(sel + i0 * plane)
+            trues.append(true[sel])
+            del pts, true, exact
+        sel = np.concatenate(sels) if sels else np.zeros(0, dtype=np.int64)
+        true = np.concatenate(trues) if trues else np.zeros(0)
+        return tuple(slice(int(a[d]), int(b[d])) for d in range(3)), sel, true
 
     def surface_samples(self, spacing: float) -> np.ndarray:
         """:meth:`AirwayTree.surface_samples` points at ``spacing`` (metres)."""
