@@ -27,7 +27,10 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "airway_masks"
 RESULTS = ROOT / "benchmarks" / "results"
 STAGES = ("segment", "sdf", "mesh", "medial_axis")
-#: name -> (mask, start pose file or None, target file or None), under ../shared/data/airway_masks
+#: overrides of an ultrathin scope: 3.0 mm outer diameter, the path's lumen test at its radius (1.5 mm)
+THIN_SCOPE = ("trajectory.min_lumen_radius_mm=1.5", "trajectory.joint_plan.scope_diameter_mm=3.0",
+              "simulate.scope_diameter_mm=3.0")
+#: name -> (mask, start pose file or None, target file or None[, overrides]), under ../shared/data/airway_masks
 MASKS = {
     "medmpd_1": ("medmpd/patient1/bronchialTree.nii.gz", None, None),
     "medmpd_1_start1": ("medmpd/patient1/bronchialTree.nii.gz", "medmpd/patient1/start1.txt", None),
@@ -39,6 +42,9 @@ MASKS = {
     "medmpd_3": ("medmpd/patient3/bronchialTree.nii.gz", None, None),
     "medmpd_3_start1_target": ("medmpd/patient3/bronchialTree.nii.gz", "medmpd/patient3/start1.txt",
                                "medmpd/patient3/target.txt"),
+    # an ultrathin scope (3.0 mm, as Olympus BF-MP190F), the lumen test at its radius
+    "medmpd_2_start1_target_3mm": ("medmpd/patient2/bronchialTree.nii.gz", "medmpd/patient2/start1.txt",
+                                   "medmpd/patient2/target.txt", THIN_SCOPE),
     "airquant_demo": ("airquant_demo/github_demo_seg.nii.gz", None, None),
     "ATM_001": ("public_trees/axes_fixed/ATM_001_0000_fixed.nii.gz", None, None),
     "CASE073": ("public_trees/axes_fixed/CASE073_fixed.nii.gz", None, None),
@@ -46,7 +52,7 @@ MASKS = {
 }
 
 
-def run_one(name: str, mask: Path, start: Path | None, target: Path | None = None) -> dict:
+def run_one(name: str, mask: Path, start: Path | None, target: Path | None = None, overrides=()) -> dict:
     """One ``room run --until trajectory``; ``target``: the route goes to that point (``trajectory.targets=points``,
     the default ``unreachable: nearest``) instead of the default random leaf."""
     row: dict = {"mask": name}
@@ -56,6 +62,8 @@ def run_one(name: str, mask: Path, start: Path | None, target: Path | None = Non
                f"output_dir={tmp}", "patients=phantom_single", f"+patients.real={entry}"]
         if target is not None:
             cmd += ["trajectory.targets=points", f"trajectory.points='{target}'"]
+        cmd += list(overrides)
+        row["overrides"] = list(overrides)
         p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         row["exit"] = p.returncode
         errs = [ln for ln in p.stderr.splitlines() if ln.startswith("room: error")]
@@ -116,14 +124,15 @@ def main() -> None:
     ap.add_argument("--only", nargs="*")
     args = ap.parse_args()
     rows = []
-    for name, (rel, start, target) in MASKS.items():
+    for name, (rel, start, target, *extra) in MASKS.items():
         if args.only and name not in args.only:
             continue
         mask = DATA / rel
         if not mask.exists():
             print(f"{name}: skipped ({mask} absent)")
             continue
-        row = run_one(name, mask, DATA / start if start else None, DATA / target if target else None)
+        row = run_one(name, mask, DATA / start if start else None, DATA / target if target else None,
+                      extra[0] if extra else ())
         print(json.dumps(row), flush=True)
         rows.append(row)
     md = ["| mask | exit | branches | sequences (frames, start, target, reached / stop reason and distance from the "
@@ -139,7 +148,8 @@ def main() -> None:
             stop = "reached" if s["reached"] else f"{s['stop_reason']} {s['stop_distance_mm']} mm"
             return f"{s['frames']} fr, {start}, {target}, {stop}"
         seqs = "; ".join(_seq(s) for s in r["sequences"])
-        md.append(f"| {r['mask']} | {r['exit']} | {r.get('branches')} | {seqs} | {r.get('sdf_peak_mb')} / "
+        name = r["mask"] + (f" ({' '.join(r['overrides'])})" if r.get("overrides") else "")
+        md.append(f"| {name} | {r['exit']} | {r.get('branches')} | {seqs} | {r.get('sdf_peak_mb')} / "
                   f"{r.get('mesh_peak_mb')} | {r['error']} |")
     sites = start_pose_sites()
     if sites:

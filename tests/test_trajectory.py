@@ -430,6 +430,27 @@ def test_user_start_pose_is_the_route_start(tmp_path):
         read_start_pose(bad)
 
 
+def test_target_point_with_a_start_pose_maps_below_the_start():
+    """Issue #18 items 2 + 3 together (Med-MPD: start*.txt and target.txt): a nodule nearest another subtree than
+    the start's maps to the airway point nearest it *below the start*, so the route starts at the pose and goes
+    as close to the nodule as the start's airways allow; leaf targets are drawn below the start too."""
+    from room_pipeline.planning.targets import select_targets as _select
+
+    tree = chain_tree([(0, (0.4, 0, -1), 0.03, 5e-3), (0, (-0.4, 0, -1), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 1e-3)
+    start = graph.branch(1).points[len(graph.branch(1).points) // 3]      # a third of the way down branch 1
+    nodule = graph.branch(2).points[-1] + np.array([-0.01, 0.0, 0.0])     # 10 mm beyond branch 2's end
+    free = plan_path(graph, nodule, tree, TrajectoryParams(unreachable="nearest"))
+    assert free.target.branch_id == 2                                       # without a start: branch 2
+    tr = plan_path(graph, nodule, tree, TrajectoryParams(unreachable="nearest"), start=start)
+    assert tr.target.branch_id == 1 and not tr.target.reached
+    assert tr.target.stop_reason == "target_outside_lumen" and "below the start pose" in tr.target.note
+    assert tr.start["kind"] == "user_pose" and tr.start["branch_id"] == 1
+    np.testing.assert_allclose(tr.target.stop_distance, np.linalg.norm(tr.positions[-1] - nodule))
+    leaves = _select(graph, _TrajectoryParams(targets="leaves", max_generation=None), below=1)
+    assert leaves == [1]
+
+
 def test_user_start_pose_where_the_scope_does_not_fit_is_one_line_naming_the_pose():
     """Med-MPD's start poses lie in peripheral airways of ~1 mm radius: a 5 mm scope cannot start there.  The
     error names the pose and what to change, not only the target branch."""

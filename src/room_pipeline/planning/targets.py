@@ -98,17 +98,35 @@ def _graph_segments(graph: CentrelineGraph):
             np.concatenate(bid), np.concatenate(s0))
 
 
-def map_target_point(graph: CentrelineGraph, point, tolerance: float, nearest: bool = False
-                     ) -> tuple[int, float, np.ndarray, float]:
+def subtree(graph: CentrelineGraph, bid: int) -> set[int]:
+    """Ids of branch ``bid`` and every branch below it."""
+    out, stack = set(), [int(bid)]
+    while stack:
+        b = stack.pop()
+        out.add(b)
+        stack.extend(c.id for c in graph.children(b))
+    return out
+
+
+def map_target_point(graph: CentrelineGraph, point, tolerance: float, nearest: bool = False,
+                     within: tuple[int, float] | None = None) -> tuple[int, float, np.ndarray, float]:
     """Map a target point (metres) to a centreline point: ``(branch id, arclength in branch, point, distance)``.
 
     The chosen centreline point is the nearest one whose lumen (radius ``r``)
     contains the target within ``tolerance`` (``|p - c| <= r + tolerance``).
     If there is none: :class:`InputError`, or with ``nearest`` the centreline
-    point whose lumen surface is nearest (min ``|p - c| - r``).
+    point whose lumen surface is nearest (min ``|p - c| - r``).  ``within``:
+    ``(branch id, arclength)`` of a centreline point: only the airways below it
+    (that branch from there on and every branch below it) are considered: where
+    a scope that has reached that point can go on to.
     """
     p = np.asarray(point, dtype=np.float64).reshape(3)
     A, B, rA, rB, bid, s0 = _graph_segments(graph)
+    if within is not None:
+        keep = np.isin(bid, list(subtree(graph, within[0])))
+        seg_len = np.linalg.norm(B - A, axis=1)
+        keep &= (bid != within[0]) | (s0 + seg_len > within[1])
+        A, B, rA, rB, bid, s0 = A[keep], B[keep], rA[keep], rB[keep], bid[keep], s0[keep]
     ab = B - A
     L2 = np.einsum("ij,ij->i", ab, ab)
     t = np.clip(np.einsum("ij,ij->i", p - A, ab) / np.maximum(L2, 1e-300), 0.0, 1.0)
@@ -128,15 +146,21 @@ def map_target_point(graph: CentrelineGraph, point, tolerance: float, nearest: b
     return int(bid[k]), float(s0[k] + t[k] * math.sqrt(L2[k])), c[k], float(d[k])
 
 
-def select_targets(graph: CentrelineGraph, params: TrajectoryParams) -> list:
-    """The configured targets: branch ids (leaves, random_leaves) or (3,) points in metres (points)."""
+def select_targets(graph: CentrelineGraph, params: TrajectoryParams, below: int | None = None) -> list:
+    """The configured targets: branch ids (leaves, random_leaves) or (3,) points in metres (points).
+
+    ``below``: a branch id (a user start pose's): leaves are drawn only from the branches below it, the ones
+    a route from that start can reach."""
     if params.targets == "points":
         return list(_points_from_config(params.points))
     g = params.max_generation
+    allowed = subtree(graph, below) if below is not None else None
     pool = [b.id for b in graph.branches
-            if (g is None or b.generation <= g) and (not graph.children(b.id) or b.generation == g)]
+            if (g is None or b.generation <= g) and (not graph.children(b.id) or b.generation == g)
+            and (allowed is None or b.id in allowed)]
     if not pool:
-        raise ConfigError(f"trajectory: no leaves up to generation {g}")
+        raise ConfigError(f"trajectory: no leaves up to generation {g}"
+                          + (f" below branch {below} (the start pose's)" if below is not None else ""))
     if params.targets == "leaves":
         return pool
     rng = np.random.default_rng(params.seed)

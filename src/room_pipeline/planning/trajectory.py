@@ -125,7 +125,8 @@ def _kappa_max(params: TrajectoryParams, geometry: ScopeGeometry | None) -> floa
     return (geometry or DEFAULT_GEOMETRY).kappa_max
 
 
-def _resolve_target(graph: CentrelineGraph, target, params: TrajectoryParams) -> TargetInfo:
+def _resolve_target(graph: CentrelineGraph, target, params: TrajectoryParams,
+                    within: tuple[int, float] | None = None) -> TargetInfo:
     if isinstance(target, (int, np.integer)) and not isinstance(target, bool):
         try:
             b = graph.branch(int(target))
@@ -136,7 +137,7 @@ def _resolve_target(graph: CentrelineGraph, target, params: TrajectoryParams) ->
     if p.shape != (3,) or not np.all(np.isfinite(p)):
         raise InputError(f"a target must be a branch id or 3 finite coordinates in metres, got {target!r}")
     bid, s, c, d = map_target_point(graph, p, params.target_tolerance_mm * MM,
-                                    nearest=params.unreachable == "nearest")
+                                    nearest=params.unreachable == "nearest", within=within)
     r = np.interp(s, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(graph.branch(bid).points, axis=0),
                                                                       axis=1))]), graph.branch(bid).radius)
     info = TargetInfo("point", bid, c, p, d)
@@ -145,8 +146,17 @@ def _resolve_target(graph: CentrelineGraph, target, params: TrajectoryParams) ->
         info.reached = False
         info.stop_reason = "target_outside_lumen"
         info.note = (f"target {(d - r) / MM:.1f} mm outside the lumen (tolerance {params.target_tolerance_mm:g} mm): "
-                     "nearest airway centreline point used")
+                     "nearest airway centreline point used"
+                     + (f" among the airways below the start pose (branch {within[0]} on)" if within else ""))
     return info
+
+
+def start_point(graph: CentrelineGraph, start, params: TrajectoryParams) -> tuple[int, float]:
+    """``(branch id, arclength)`` of the centreline point a user start pose maps to (as :func:`_start` maps it)."""
+    T = np.asarray(start, dtype=np.float64)
+    p = T[:3, 3] if T.shape == (4, 4) else T.reshape(3)
+    bid, s_b, _, _ = map_target_point(graph, p, params.target_tolerance_mm * MM, nearest=True)
+    return bid, s_b
 
 
 def _branch_arclength(graph: CentrelineGraph, info: TargetInfo) -> float:
@@ -243,7 +253,9 @@ def plan_path(graph: CentrelineGraph, target, sdf_fn, params: TrajectoryParams |
     params = params or TrajectoryParams()
     fn = as_sdf_fn(sdf_fn)
     kmax = _kappa_max(params, geometry)
-    info = _resolve_target(graph, target, params)
+    # a point target with a user start: mapped among the airways below the start (a route can only go on from it)
+    within = start_point(graph, start, params) if start is not None else None
+    info = _resolve_target(graph, target, params, within)
     offset, start_doc = _start(graph, info, params, start)
     full = _route(graph, info.branch_id, _branch_arclength(graph, info), offset)
     route = full

@@ -17,8 +17,8 @@ from ..config.compose import patient_entry, section
 from ..errors import ConfigError
 from ..io.atomic import write_json, write_text
 from ..io.volume import read_nifti_sdf
-from ..planning.trajectory import (TrajectoryParams, plan_path, read_start_pose, select_targets, timestamps_dict,
-                                   volume_sdf_fn)
+from ..planning.trajectory import (TrajectoryParams, plan_path, read_start_pose, select_targets, start_point,
+                                   timestamps_dict, volume_sdf_fn)
 from .common import StageTimer, metadata, patient_paths, read_json, write_metrics
 
 
@@ -38,14 +38,16 @@ def run(cfg: DictConfig, key: str) -> dict:
     with StageTimer() as timer:
         graph = CentrelineGraph.from_dict(read_json(paths.centreline_graph))
         sdf = read_nifti_sdf(paths.sdf)
-        targets = select_targets(graph, params)
+        # optional user start pose of the patient entry (conf/patients/*: start_pose: a Med-MPD start*.txt, 4x4, mm);
+        # leaf targets are then drawn from the branches below it
+        start_file = patient_entry(cfg, patient).get("start_pose")
+        start = read_start_pose(start_file) if start_file else None
+        below = start_point(graph, start, params)[0] if start is not None else None
+        targets = select_targets(graph, params, below=below)
         index = sequences.index(sequence)
         if index >= len(targets):
             raise ConfigError(f"{sequence} needs target #{index + 1} but trajectory.targets='{params.targets}' "
                               f"yields {len(targets)} for {patient}")
-        # optional user start pose of the patient entry (conf/patients/*: start_pose: a Med-MPD start*.txt, 4x4, mm)
-        start_file = patient_entry(cfg, patient).get("start_pose")
-        start = read_start_pose(start_file) if start_file else None
         traj = plan_path(graph, targets[index], volume_sdf_fn(sdf), params, start=start)
     if start_file:  # DVC tracks the entry (params patients.<id>); the bytes it read are recorded here
         traj.start.update(file=str(start_file), sha256=hashlib.sha256(Path(start_file).read_bytes()).hexdigest())
