@@ -203,7 +203,7 @@ def _old_segment_params(d: dict) -> SegmentParams:
     return SegmentParams(**kw)
 
 
-@pytest.mark.parametrize("overrides", [[], ["patients=shared_masks"], ["patients=phantom_cohort"],
+@pytest.mark.parametrize("overrides", [[], ["patients=shared_masks"], ["patients=phantom_cohort"], ["patients=reference_tree"],
                                        ["segment=totalsegmentator"], ["trajectory.stop_at_wall=false"],
                                        ["patients=shared_masks", "render.max_frames=30"]])
 def test_every_composed_config_reads_to_the_same_params_as_before(overrides):
