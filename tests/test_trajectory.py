@@ -449,6 +449,8 @@ def test_target_point_with_a_start_pose_maps_below_the_start():
     np.testing.assert_allclose(tr.target.stop_distance, np.linalg.norm(tr.positions[-1] - nodule))
     leaves = _select(graph, _TrajectoryParams(targets="leaves", max_generation=None), below=1)
     assert leaves == [1]
+    # a start deeper than max_generation: the leaves below it all the same
+    assert _select(graph, _TrajectoryParams(targets="leaves", max_generation=0), below=2) == [2]
 
 
 def test_user_start_pose_where_the_scope_does_not_fit_is_one_line_naming_the_pose():

@@ -150,7 +150,7 @@ def select_targets(graph: CentrelineGraph, params: TrajectoryParams, below: int 
     """The configured targets: branch ids (leaves, random_leaves) or (3,) points in metres (points).
 
     ``below``: a branch id (a user start pose's): leaves are drawn only from the branches below it, the ones
-    a route from that start can reach."""
+    a route from that start can reach (every leaf below it when the start lies deeper than ``max_generation``)."""
     if params.targets == "points":
         return list(_points_from_config(params.points))
     g = params.max_generation
@@ -158,6 +158,9 @@ def select_targets(graph: CentrelineGraph, params: TrajectoryParams, below: int 
     pool = [b.id for b in graph.branches
             if (g is None or b.generation <= g) and (not graph.children(b.id) or b.generation == g)
             and (allowed is None or b.id in allowed)]
+    if not pool and allowed is not None:
+        # the start lies deeper than max_generation: the leaves below it, whatever their generation
+        pool = [b.id for b in graph.branches if b.id in allowed and not graph.children(b.id)]
     if not pool:
         raise ConfigError(f"trajectory: no leaves up to generation {g}"
                           + (f" below branch {below} (the start pose's)" if below is not None else ""))
