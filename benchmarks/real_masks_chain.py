@@ -122,6 +122,9 @@ def start_pose_sites() -> list[dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="*")
+    ap.add_argument("--merge", action="store_true",
+                    help="with --only: replace those rows in the saved results and keep the others (marked with the "
+                         "command that made them in the json)")
     args = ap.parse_args()
     rows = []
     for name, (rel, start, target, *extra) in MASKS.items():
@@ -133,8 +136,13 @@ def main() -> None:
             continue
         row = run_one(name, mask, DATA / start if start else None, DATA / target if target else None,
                       extra[0] if extra else ())
+        row["run_by"] = " ".join(["python benchmarks/real_masks_chain.py", *sys.argv[1:]])
         print(json.dumps(row), flush=True)
         rows.append(row)
+    if args.merge and (RESULTS / "real_masks_chain.json").is_file():
+        new = {r["mask"]: r for r in rows}
+        old = {r["mask"]: r for r in json.loads((RESULTS / "real_masks_chain.json").read_text())["rows"]}
+        rows = [new.get(name) or old[name] for name in MASKS if name in new or name in old]
     md = ["| mask | exit | branches | sequences (frames, start, target, reached / stop reason and distance from the "
           "target) | peak RSS MB sdf / mesh | error |",
           "|---|---|---|---|---|---|"]
@@ -148,7 +156,8 @@ def main() -> None:
             stop = "reached" if s["reached"] else f"{s['stop_reason']} {s['stop_distance_mm']} mm"
             return f"{s['frames']} fr, {start}, {target}, {stop}"
         seqs = "; ".join(_seq(s) for s in r["sequences"])
-        name = r["mask"] + (f" ({' '.join(r['overrides'])})" if r.get("overrides") else "")
+        name = r["mask"] + (f" ({' '.join(r['overrides'])})" if r.get("overrides") else "") + (
+            " (re-run: `--only ... --merge`)" if "--merge" in r.get("run_by", "") else "")
         md.append(f"| {name} | {r['exit']} | {r.get('branches')} | {seqs} | {r.get('sdf_peak_mb')} / "
                   f"{r.get('mesh_peak_mb')} | {r['error']} |")
     sites = start_pose_sites()
