@@ -3,7 +3,8 @@
 
 Runs ``room run --until trajectory`` (each stage in its own process) per mask from ``../shared/data`` with the
 default config (Med-MPD patient 1 also with its ``start1.txt`` as the user start pose, and every Med-MPD patient
-with its ``start1.txt`` and its ``target.txt``, a nodule in the parenchyma, as the route's target), and records per
+with its ``target.txt``, a nodule in the parenchyma, as the route's target, from the trachea and from its
+``start1.txt``), and records per
 mask: ok / the one-line error, branches, the trajectory's frames, start, target and stop (reason, distance from
 the target), each stage's peak RSS and wall time.  Saves benchmarks/results/real_masks_chain.{json,md}.  Skips masks that are absent.
 
@@ -33,13 +34,16 @@ THIN_SCOPE = ("trajectory.min_lumen_radius_mm=1.5", "trajectory.joint_plan.scope
 #: name -> (mask, start pose file or None, target file or None[, overrides]), under ../shared/data/airway_masks
 MASKS = {
     "medmpd_1": ("medmpd/patient1/bronchialTree.nii.gz", None, None),
+    "medmpd_1_target": ("medmpd/patient1/bronchialTree.nii.gz", None, "medmpd/patient1/target.txt"),
     "medmpd_1_start1": ("medmpd/patient1/bronchialTree.nii.gz", "medmpd/patient1/start1.txt", None),
     "medmpd_1_start1_target": ("medmpd/patient1/bronchialTree.nii.gz", "medmpd/patient1/start1.txt",
                                "medmpd/patient1/target.txt"),
     "medmpd_2": ("medmpd/patient2/bronchialTree.nii.gz", None, None),
+    "medmpd_2_target": ("medmpd/patient2/bronchialTree.nii.gz", None, "medmpd/patient2/target.txt"),
     "medmpd_2_start1_target": ("medmpd/patient2/bronchialTree.nii.gz", "medmpd/patient2/start1.txt",
                                "medmpd/patient2/target.txt"),
     "medmpd_3": ("medmpd/patient3/bronchialTree.nii.gz", None, None),
+    "medmpd_3_target": ("medmpd/patient3/bronchialTree.nii.gz", None, "medmpd/patient3/target.txt"),
     "medmpd_3_start1_target": ("medmpd/patient3/bronchialTree.nii.gz", "medmpd/patient3/start1.txt",
                                "medmpd/patient3/target.txt"),
     # an ultrathin scope (3.0 mm, as Olympus BF-MP190F), the lumen test at its radius
