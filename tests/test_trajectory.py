@@ -462,6 +462,12 @@ def test_user_start_pose_where_the_scope_does_not_fit_is_one_line_naming_the_pos
     with pytest.raises(InputError, match=r"^start pose \(.*\) mm: the scope does not fit there") as exc:
         plan_path(graph, 1, tree, _TrajectoryParams(), start=thin)      # the config defaults
     assert "min_lumen_radius_mm" in str(exc.value) and "\n" not in str(exc.value)
+    # a lumen that passes the radius test but not the scope's wall check (stop_at_wall) at the first frames
+    tree = chain_tree([(0, (0.4, 0, -1), 0.03, 2.2e-3), (0, (-0.4, 0, -1), 0.03, 5e-3)])
+    graph = from_airway_tree(tree, 0.25e-3)
+    mid = graph.branch(1).points[len(graph.branch(1).points) // 2]
+    with pytest.raises(InputError, match=r"^start pose \(.*\) mm: the scope does not fit there \(trajectory.stop_at_wall"):
+        plan_path(graph, 1, tree, _TrajectoryParams(min_lumen_radius_mm=1.0), start=mid)
 
 
 def test_target_outside_lumen_says_how_far_and_why():
