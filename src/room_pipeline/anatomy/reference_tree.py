@@ -153,11 +153,11 @@ def hull_lungs(tree: AirwayTree, params: PhantomParams, reach_mm: float = 15.0, 
     in the lung).  Returns a function of the grid's axes ``(xs, ys, zs)`` (metres) for
     :func:`~room_pipeline.anatomy.phantom.rasterise`: the signed distance (float32, metres, < 0 inside),
     the Euclidean distance (``scipy.ndimage``'s EDT) to the axis points, on every :data:`LUNG_STRIDE`-th voxel
-    and trilinear in between (the axis points snap to that coarser grid): on the Schmidt tree at 0.7 mm,
-    within 1.47 mm (p99 1.01 mm) of the full-resolution transform where that is within 2 mm of the lung's
-    edge, in 4.7 instead of 19.6 s and an eighth of the memory (session 19, a scratch comparison with
-    ``LUNG_STRIDE = 1``; ``tests/test_reference_tree.py`` bounds it on a small tree).  The edge lies
-    ``reach_mm`` from the nearest airway axis, so no airway voxel's tissue changes.
+    and trilinear in between (the axis points snap to that coarser grid, an eighth of the full grid's
+    memory): within 1.6 mm of the full-resolution transform near the lung's edge
+    (``tests/test_reference_tree.py::test_hull_lungs_on_the_coarse_grid_stay_near_the_full_resolution_transform``,
+    on a small tree at 0.7 mm).  The edge lies ``reach_mm`` from the nearest airway axis, so no airway voxel's
+    tissue changes.
     """
     reach = reach_mm * MM
     half_width = params.mediastinum_half_width_mm * MM

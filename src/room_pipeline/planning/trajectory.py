@@ -337,13 +337,11 @@ def _stop_at_wall(traj: Trajectory, aims: np.ndarray, fn: SdfFn, params: Traject
             break
         note = note or found
         if k < 2:
-            why = (f"trajectory.stop_at_wall: {found['reason']} {found['clearance_mm']:.2f} mm < "
-                   f"{found['required_mm']:.2f} mm at frame {k}")
+            what = f"{found['reason']} {found['clearance_mm']:.2f} mm < {found['required_mm']:.2f} mm at frame {k}"
             if (traj.start or {}).get("kind") == "user_pose":
-                raise InputError(_no_reachable_point(traj.target, traj.start, why))
+                raise InputError(_no_reachable_point(traj.target, traj.start, f"trajectory.stop_at_wall: {what}"))
             raise InputError(f"target branch {traj.target.branch_id}: trajectory.stop_at_wall: the scope does not "
-                             f"fit from the start ({found['reason']} {found['clearance_mm']:.2f} mm < "
-                             f"{found['required_mm']:.2f} mm at frame {k})")
+                             f"fit from the start ({what})")
         cut = truncate(traj, k)
         if params.joint_plan is not None and replans < _STOP_REPLANS:
             replans += 1
